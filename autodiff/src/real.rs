@@ -1,0 +1,76 @@
+//! The scalar trait: everything in Tapestry is generic over `f32` (speed) and `f64` (checking).
+
+use std::fmt::{Debug, Display};
+use std::iter::Sum;
+
+use ndarray::{LinalgScalar, ScalarOperand};
+use num_traits::{Float, FloatConst, FromPrimitive, NumAssign};
+
+mod sealed {
+    pub trait Sealed {}
+    impl Sealed for f32 {}
+    impl Sealed for f64 {}
+}
+
+/// A floating-point scalar the tape can differentiate: `f32` or `f64` (sealed).
+pub trait Real:
+    Float
+    + FloatConst
+    + FromPrimitive
+    + NumAssign
+    + LinalgScalar
+    + ScalarOperand
+    + Sum
+    + Default
+    + Debug
+    + Display
+    + Send
+    + Sync
+    + sealed::Sealed
+    + 'static
+{
+    /// Name of the type, for reports ("f32" / "f64").
+    const NAME: &'static str;
+    /// Machine epsilon of the type.
+    const EPS: Self;
+    /// Converts from `f64` (rounding for `f32`).
+    fn from_f64c(x: f64) -> Self;
+    /// Converts to `f64` exactly.
+    fn to_f64c(self) -> f64;
+    /// `usize` to scalar.
+    fn from_usize_c(n: usize) -> Self {
+        Self::from_f64c(n as f64)
+    }
+}
+
+impl Real for f32 {
+    const NAME: &'static str = "f32";
+    const EPS: Self = f32::EPSILON;
+    #[inline(always)]
+    fn from_f64c(x: f64) -> Self {
+        x as f32
+    }
+    #[inline(always)]
+    fn to_f64c(self) -> f64 {
+        self as f64
+    }
+}
+
+impl Real for f64 {
+    const NAME: &'static str = "f64";
+    const EPS: Self = f64::EPSILON;
+    #[inline(always)]
+    fn from_f64c(x: f64) -> Self {
+        x
+    }
+    #[inline(always)]
+    fn to_f64c(self) -> f64 {
+        self
+    }
+}
+
+/// Shorthand for a scalar constant: `c::<T>(0.5)`.
+#[inline(always)]
+pub fn c<T: Real>(x: f64) -> T {
+    T::from_f64c(x)
+}

@@ -1,0 +1,4 @@
+//! Tapestry: differentiable rendering in Rust.
+pub use autodiff;
+pub use models;
+pub use render_ops;
