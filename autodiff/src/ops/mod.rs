@@ -1,0 +1,7 @@
+//! Built-in ops. Every one implements [`crate::Op`], the same trait user ops implement.
+pub mod elementwise;
+pub mod index;
+pub mod linalg;
+pub mod reduce;
+pub mod shape;
+pub mod vector;

@@ -1,0 +1,515 @@
+//! The tape: an arena of recorded values and ops, walked once in reverse by `backward`.
+//!
+//! Define-by-run: build a fresh [`Tape`] for every evaluation, create leaves from parameter
+//! tensors kept outside it, compose ops through [`Var`] handles, call [`Tape::backward`].
+//!
+//! Errors are *sticky*: an op whose inputs do not fit records the error on the tape and
+//! returns a poisoned variable; every op fed a poisoned variable returns a poisoned one
+//! without computing, and [`Var::value`], [`Tape::backward`] and [`Tape::vjp`] return the
+//! first error. This lets `(a * b + c).exp().sum()` read like math without a `?` per op, while
+//! never panicking and never hiding the failing op.
+
+use std::cell::{Cell, RefCell};
+use std::fmt;
+use std::sync::Arc;
+
+use ndarray::{ArrayD, IxDyn};
+use smallvec::SmallVec;
+
+use crate::error::{AutodiffError, Pass, Result};
+use crate::tensor::{all_finite, scalar, Tensor};
+use crate::Real;
+
+/// What an op's backward receives.
+pub struct BackwardCtx<'a, T: Real> {
+    /// Input values, in the order the op was applied to them.
+    pub inputs: &'a [&'a Tensor<T>],
+    /// Output values of the forward.
+    pub outputs: &'a [&'a Tensor<T>],
+    /// Gradient of the loss with respect to each output (zeros for outputs that did not
+    /// reach the loss).
+    pub grad_outputs: &'a [&'a Tensor<T>],
+    /// Which inputs need a gradient; return `None` for the others and skip their work.
+    pub needs_grad: &'a [bool],
+}
+
+/// The one op trait, for built-in and user ops alike: a forward and a hand-written backward
+/// (a vector-Jacobian product). Non-differentiable data (integer ids, caches of the forward)
+/// lives in the op's own fields, which the forward may fill.
+pub trait Op<T: Real>: 'static {
+    /// Name shown in errors, anomaly reports and gradcheck tables.
+    fn name(&self) -> &'static str;
+    /// Computes the outputs from the inputs. Shape problems are returned as errors.
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>>;
+    /// Returns, for every input, the gradient of the loss (same shape as the input), or `None`
+    /// where `ctx.needs_grad` is false.
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>>;
+}
+
+struct Slot<T: Real> {
+    value: Arc<Tensor<T>>,
+    requires_grad: bool,
+    poisoned: bool,
+    /// The op (index into `ops`) that produced this variable; `None` for leaves and constants.
+    producer: Option<u32>,
+}
+
+struct Record<T: Real> {
+    op: Box<dyn Op<T>>,
+    inputs: SmallVec<[u32; 4]>,
+    outputs: SmallVec<[u32; 2]>,
+}
+
+struct Inner<T: Real> {
+    slots: Vec<Slot<T>>,
+    ops: Vec<Record<T>>,
+    error: Option<AutodiffError>,
+}
+
+/// An arena of variables and the ops that produced them.
+pub struct Tape<T: Real> {
+    inner: RefCell<Inner<T>>,
+    no_grad_depth: Cell<u32>,
+    anomaly: Cell<bool>,
+}
+
+impl<T: Real> Default for Tape<T> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// A handle to a variable on a tape: cheap to copy, combined with operators and methods.
+#[derive(Clone, Copy)]
+pub struct Var<'t, T: Real> {
+    tape: &'t Tape<T>,
+    id: u32,
+}
+
+impl<T: Real> fmt::Debug for Var<'_, T> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "Var(#{} {:?})", self.id, self.shape())
+    }
+}
+
+/// Gradients from one backward pass, indexed by variable.
+pub struct Gradients<T: Real> {
+    grads: Vec<Option<Tensor<T>>>,
+}
+
+impl<T: Real> Gradients<T> {
+    /// Gradient of a leaf (or `None` if the loss does not depend on it or it does not
+    /// require gradients).
+    pub fn get(&self, v: Var<'_, T>) -> Option<&Tensor<T>> {
+        self.grads.get(v.id as usize).and_then(|g| g.as_ref())
+    }
+    /// Gradient of a leaf, zeros of its shape where the loss does not depend on it.
+    pub fn wrt(&self, v: Var<'_, T>) -> Tensor<T> {
+        match self.get(v) {
+            Some(g) => g.clone(),
+            None => ArrayD::zeros(IxDyn(&v.shape())),
+        }
+    }
+    /// Moves a leaf's gradient out.
+    pub fn take(&mut self, v: Var<'_, T>) -> Option<Tensor<T>> {
+        self.grads.get_mut(v.id as usize).and_then(|g| g.take())
+    }
+}
+
+impl<T: Real> Tape<T> {
+    /// An empty tape.
+    pub fn new() -> Self {
+        Tape {
+            inner: RefCell::new(Inner {
+                slots: Vec::new(),
+                ops: Vec::new(),
+                error: None,
+            }),
+            no_grad_depth: Cell::new(0),
+            anomaly: Cell::new(false),
+        }
+    }
+
+    /// An empty tape with room for `n` variables.
+    pub fn with_capacity(n: usize) -> Self {
+        let t = Self::new();
+        t.inner.borrow_mut().slots.reserve(n);
+        t.inner.borrow_mut().ops.reserve(n);
+        t
+    }
+
+    /// Turns anomaly detection on or off (off by default): when on, the first op whose
+    /// forward output or backward gradient holds a NaN or Inf is reported as
+    /// [`AutodiffError::Anomaly`], naming the op, its node and its input shapes.
+    pub fn set_detect_anomaly(&self, on: bool) {
+        self.anomaly.set(on);
+    }
+
+    /// Number of variables recorded so far.
+    pub fn len(&self) -> usize {
+        self.inner.borrow().slots.len()
+    }
+
+    /// True when nothing is recorded.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Number of ops recorded for backward (ops on constants only are not recorded).
+    pub fn num_ops(&self) -> usize {
+        self.inner.borrow().ops.len()
+    }
+
+    /// The first error recorded on this tape, if any.
+    pub fn error(&self) -> Option<AutodiffError> {
+        self.inner.borrow().error.clone()
+    }
+
+    fn push_slot(&self, value: Arc<Tensor<T>>, requires_grad: bool) -> Var<'_, T> {
+        let mut inner = self.inner.borrow_mut();
+        let id = inner.slots.len() as u32;
+        inner.slots.push(Slot {
+            value,
+            requires_grad,
+            poisoned: false,
+            producer: None,
+        });
+        Var { tape: self, id }
+    }
+
+    /// A leaf variable; `requires_grad` says whether backward computes its gradient.
+    pub fn var(&self, value: Tensor<T>, requires_grad: bool) -> Var<'_, T> {
+        self.push_slot(Arc::new(value), requires_grad)
+    }
+
+    /// A leaf that requires gradients (a parameter).
+    pub fn leaf(&self, value: Tensor<T>) -> Var<'_, T> {
+        self.var(value, true)
+    }
+
+    /// A leaf sharing an existing tensor without copying it.
+    pub fn var_shared(&self, value: Arc<Tensor<T>>, requires_grad: bool) -> Var<'_, T> {
+        self.push_slot(value, requires_grad)
+    }
+
+    /// A constant (no gradient).
+    pub fn constant(&self, value: Tensor<T>) -> Var<'_, T> {
+        self.var(value, false)
+    }
+
+    /// A 0-dimensional constant.
+    pub fn scalar(&self, x: T) -> Var<'_, T> {
+        self.constant(scalar(x))
+    }
+
+    /// A 0-dimensional constant from an `f64`.
+    pub fn scalar_f64(&self, x: f64) -> Var<'_, T> {
+        self.scalar(T::from_f64c(x))
+    }
+
+    /// Runs `f` with gradient recording off: ops inside produce constants.
+    pub fn no_grad<R>(&self, f: impl FnOnce() -> R) -> R {
+        self.no_grad_depth.set(self.no_grad_depth.get() + 1);
+        let r = f();
+        self.no_grad_depth.set(self.no_grad_depth.get() - 1);
+        r
+    }
+
+    /// True inside [`Tape::no_grad`].
+    pub fn is_no_grad(&self) -> bool {
+        self.no_grad_depth.get() > 0
+    }
+
+    fn poison(&self, err: AutodiffError, n_outputs: usize) -> SmallVec<[Var<'_, T>; 2]> {
+        let mut inner = self.inner.borrow_mut();
+        if inner.error.is_none() {
+            inner.error = Some(err);
+        }
+        let empty = Arc::new(scalar(T::nan()));
+        (0..n_outputs.max(1))
+            .map(|_| {
+                let id = inner.slots.len() as u32;
+                inner.slots.push(Slot {
+                    value: empty.clone(),
+                    requires_grad: false,
+                    poisoned: true,
+                    producer: None,
+                });
+                Var { tape: self, id }
+            })
+            .collect()
+    }
+
+    /// Records `op` applied to `inputs`; returns its outputs. `n_outputs` is the number of
+    /// outputs the op produces (used to shape poisoned results when an input is poisoned).
+    pub fn apply_multi<'t, O: Op<T>>(
+        &'t self,
+        mut op: O,
+        inputs: &[Var<'t, T>],
+        n_outputs: usize,
+    ) -> SmallVec<[Var<'t, T>; 2]> {
+        let mut values: SmallVec<[Arc<Tensor<T>>; 4]> = SmallVec::new();
+        let mut requires_grad = false;
+        {
+            let inner = self.inner.borrow();
+            for v in inputs {
+                if !std::ptr::eq(v.tape, self) {
+                    drop(inner);
+                    return self.poison(
+                        AutodiffError::Tape(format!("{}: input from another tape", op.name())),
+                        n_outputs,
+                    );
+                }
+                let s = &inner.slots[v.id as usize];
+                if s.poisoned {
+                    drop(inner);
+                    return self.poison(AutodiffError::Tape("poisoned".into()), n_outputs);
+                }
+                requires_grad |= s.requires_grad;
+                values.push(s.value.clone());
+            }
+        }
+        requires_grad &= !self.is_no_grad();
+        let refs: SmallVec<[&Tensor<T>; 4]> = values.iter().map(|a| &**a).collect();
+        let outs = match op.forward(&refs) {
+            Ok(o) => o,
+            Err(e) => return self.poison(e, n_outputs),
+        };
+        let mut inner = self.inner.borrow_mut();
+        let first = inner.slots.len();
+        if self.anomaly.get() && !outs.iter().all(all_finite) {
+            let err = AutodiffError::Anomaly {
+                op: op.name(),
+                node: first,
+                pass: Pass::Forward,
+                input_shapes: refs.iter().map(|t| t.shape().to_vec()).collect(),
+            };
+            drop(inner);
+            return self.poison(err, n_outputs);
+        }
+        let producer = if requires_grad {
+            Some(inner.ops.len() as u32)
+        } else {
+            None
+        };
+        let mut vars = SmallVec::new();
+        let mut out_ids = SmallVec::new();
+        for o in outs {
+            let id = inner.slots.len() as u32;
+            inner.slots.push(Slot {
+                value: Arc::new(o),
+                requires_grad,
+                poisoned: false,
+                producer,
+            });
+            out_ids.push(id);
+            vars.push(Var { tape: self, id });
+        }
+        if requires_grad {
+            inner.ops.push(Record {
+                op: Box::new(op),
+                inputs: inputs.iter().map(|v| v.id).collect(),
+                outputs: out_ids,
+            });
+        }
+        vars
+    }
+
+    /// Records a single-output op.
+    pub fn apply<'t, O: Op<T>>(&'t self, op: O, inputs: &[Var<'t, T>]) -> Var<'t, T> {
+        self.apply_multi(op, inputs, 1)[0]
+    }
+
+    /// Gradients of a scalar (one-element) `loss` with respect to every leaf that requires them.
+    pub fn backward(&self, loss: Var<'_, T>) -> Result<Gradients<T>> {
+        let v = loss.value()?;
+        if v.len() != 1 {
+            return Err(AutodiffError::shape(
+                "backward",
+                &[v.shape()],
+                "backward needs a one-element loss; use vjp for other outputs",
+            ));
+        }
+        let seed = ArrayD::from_elem(IxDyn(v.shape()), T::one());
+        self.vjp(loss, seed)
+    }
+
+    /// Vector-Jacobian product: gradients of `sum(output * grad_output)` with respect to every
+    /// leaf that requires them.
+    pub fn vjp(&self, output: Var<'_, T>, grad_output: Tensor<T>) -> Result<Gradients<T>> {
+        let v = output.value()?;
+        if v.shape() != grad_output.shape() {
+            return Err(AutodiffError::shape(
+                "vjp",
+                &[v.shape(), grad_output.shape()],
+                "grad_output must have the output's shape",
+            ));
+        }
+        let inner = self.inner.borrow();
+        let mut grads: Vec<Option<Tensor<T>>> = Vec::new();
+        grads.resize_with(inner.slots.len(), || None);
+        let out_slot = &inner.slots[output.id as usize];
+        if !out_slot.requires_grad {
+            return Ok(Gradients { grads });
+        }
+        let last_op = match out_slot.producer {
+            Some(p) => p as usize + 1,
+            None => {
+                // The output is itself a leaf.
+                grads[output.id as usize] = Some(grad_output);
+                return Ok(Gradients { grads });
+            }
+        };
+        grads[output.id as usize] = Some(grad_output);
+        let mut needs: SmallVec<[bool; 4]> = SmallVec::new();
+        for rec in inner.ops[..last_op].iter().rev() {
+            if rec.outputs.iter().all(|&o| grads[o as usize].is_none()) {
+                continue;
+            }
+            let out_vals: SmallVec<[&Tensor<T>; 2]> = rec
+                .outputs
+                .iter()
+                .map(|&o| &*inner.slots[o as usize].value)
+                .collect();
+            // Missing output gradients of multi-output ops are zeros.
+            let zeros: SmallVec<[Option<Tensor<T>>; 2]> = rec
+                .outputs
+                .iter()
+                .zip(&out_vals)
+                .map(|(&o, val)| {
+                    grads[o as usize]
+                        .is_none()
+                        .then(|| ArrayD::zeros(IxDyn(val.shape())))
+                })
+                .collect();
+            let gouts: SmallVec<[&Tensor<T>; 2]> = rec
+                .outputs
+                .iter()
+                .zip(&zeros)
+                .map(|(&o, z)| z.as_ref().unwrap_or_else(|| grads[o as usize].as_ref().unwrap()))
+                .collect();
+            let in_vals: SmallVec<[&Tensor<T>; 4]> = rec
+                .inputs
+                .iter()
+                .map(|&i| &*inner.slots[i as usize].value)
+                .collect();
+            needs.clear();
+            needs.extend(rec.inputs.iter().map(|&i| inner.slots[i as usize].requires_grad));
+            let ctx = BackwardCtx {
+                inputs: &in_vals,
+                outputs: &out_vals,
+                grad_outputs: &gouts,
+                needs_grad: &needs,
+            };
+            let gins = rec.op.backward(&ctx)?;
+            drop(gouts);
+            drop(zeros);
+            if gins.len() != rec.inputs.len() {
+                return Err(AutodiffError::Op {
+                    op: rec.op.name(),
+                    detail: format!(
+                        "backward returned {} gradients for {} inputs",
+                        gins.len(),
+                        rec.inputs.len()
+                    ),
+                });
+            }
+            // Intermediate gradients are no longer needed once consumed.
+            for &o in &rec.outputs {
+                grads[o as usize] = None;
+            }
+            for (k, (g, &inp)) in gins.into_iter().zip(&rec.inputs).enumerate() {
+                let Some(g) = g else { continue };
+                if !needs[k] {
+                    continue;
+                }
+                let want = inner.slots[inp as usize].value.shape();
+                if g.shape() != want {
+                    return Err(AutodiffError::shape(
+                        rec.op.name(),
+                        &[want, g.shape()],
+                        format!("backward returned a gradient of the wrong shape for input {k}"),
+                    ));
+                }
+                if self.anomaly.get() && !all_finite(&g) {
+                    return Err(AutodiffError::Anomaly {
+                        op: rec.op.name(),
+                        node: rec.outputs[0] as usize,
+                        pass: Pass::Backward,
+                        input_shapes: in_vals.iter().map(|t| t.shape().to_vec()).collect(),
+                    });
+                }
+                match &mut grads[inp as usize] {
+                    Some(acc) => *acc += &g,
+                    slot @ None => *slot = Some(g),
+                }
+            }
+        }
+        Ok(Gradients { grads })
+    }
+}
+
+impl<'t, T: Real> Var<'t, T> {
+    /// The tape this variable lives on.
+    pub fn tape(&self) -> &'t Tape<T> {
+        self.tape
+    }
+    /// Index of the variable on its tape.
+    pub fn id(&self) -> usize {
+        self.id as usize
+    }
+    /// The value, or the tape's first error if this variable was poisoned by it.
+    pub fn value(&self) -> Result<Arc<Tensor<T>>> {
+        let inner = self.tape.inner.borrow();
+        let s = &inner.slots[self.id as usize];
+        if s.poisoned {
+            return Err(inner
+                .error
+                .clone()
+                .unwrap_or_else(|| AutodiffError::Tape("poisoned variable".into())));
+        }
+        Ok(s.value.clone())
+    }
+    /// The single element of a one-element variable.
+    pub fn item(&self) -> Result<T> {
+        let v = self.value()?;
+        if v.len() != 1 {
+            return Err(AutodiffError::shape("item", &[v.shape()], "item needs one element"));
+        }
+        Ok(*v.iter().next().expect("one element"))
+    }
+    /// Shape of the value (empty for scalars and poisoned variables).
+    pub fn shape(&self) -> Vec<usize> {
+        self.tape.inner.borrow().slots[self.id as usize]
+            .value
+            .shape()
+            .to_vec()
+    }
+    /// Number of dimensions.
+    pub fn ndim(&self) -> usize {
+        self.tape.inner.borrow().slots[self.id as usize].value.ndim()
+    }
+    /// Number of elements.
+    pub fn len(&self) -> usize {
+        self.tape.inner.borrow().slots[self.id as usize].value.len()
+    }
+    /// True for zero-element variables.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Whether backward propagates into this variable.
+    pub fn requires_grad(&self) -> bool {
+        self.tape.inner.borrow().slots[self.id as usize].requires_grad
+    }
+    /// A constant sharing this variable's value: gradients stop here.
+    pub fn detach(&self) -> Var<'t, T> {
+        let inner = self.tape.inner.borrow();
+        let s = &inner.slots[self.id as usize];
+        if s.poisoned {
+            return *self;
+        }
+        let value = s.value.clone();
+        drop(inner);
+        self.tape.var_shared(value, false)
+    }
+}
