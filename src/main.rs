@@ -1,1 +1,16 @@
-fn main() {}
+//! The `tapestry` binary: parses the command line and prints errors as one line on stderr.
+
+use std::process::ExitCode;
+
+use clap::Parser;
+
+fn main() -> ExitCode {
+    let cli = tapestry::cli::Cli::parse();
+    match tapestry::cli::run(cli) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("tapestry: error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}

@@ -137,7 +137,9 @@ where
         .map(|(x, &w)| tape.var(x.clone(), w))
         .collect();
     let y = f(&tape, &vars);
-    Ok((*y.value()?).clone())
+    // Read outputs as flat row-major slices below, whatever layout the function returned.
+    let v = y.value()?;
+    Ok(v.as_standard_layout().into_owned())
 }
 
 fn analytic_vjp<F>(f: &F, xs: &[Tensor<f64>], wrt: &[bool], v: Tensor<f64>) -> Result<Vec<Tensor<f64>>>
@@ -243,11 +245,12 @@ where
                 xs[i] = x0;
                 let n: f64 = ((&yp - &ym) * &v).sum() / (2.0 * opts.eps);
                 let abs = (a - n).abs();
+                let rel = abs / n.abs().max(opts.atol);
                 reports.push(InputReport {
                     input: i,
                     shape: xs[i].shape().to_vec(),
                     max_abs_err: if abs.is_nan() { f64::INFINITY } else { abs },
-                    max_rel_err: abs / n.abs().max(opts.atol),
+                    max_rel_err: if rel.is_nan() { f64::INFINITY } else { rel },
                     worst_index: vec![],
                     analytic: a,
                     numeric: n,
@@ -288,6 +291,10 @@ impl PrecisionReport {
 }
 
 fn normwise<T: Real>(a: &Tensor<T>, b: &Tensor<f64>) -> f64 {
+    // `f64::max` ignores NaN, so a NaN on either side is reported as an infinite difference.
+    if a.iter().any(|x| x.is_nan()) || b.iter().any(|y| y.is_nan()) {
+        return f64::INFINITY;
+    }
     let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let diff = a
         .iter()

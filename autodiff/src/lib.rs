@@ -18,6 +18,7 @@ pub mod ops;
 pub mod optim;
 pub mod real;
 pub mod rng;
+pub mod suite;
 pub mod tape;
 pub mod tensor;
 mod var_ops;

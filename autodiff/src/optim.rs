@@ -6,25 +6,34 @@ use crate::error::{AutodiffError, Result};
 use crate::tensor::Tensor;
 use crate::Real;
 
-fn check_state<T: Real>(name: &'static str, state: &mut Vec<Tensor<T>>, k: usize, p: &Tensor<T>) -> Result<()> {
-    if state.len() == k {
-        state.push(Tensor::zeros(p.raw_dim()));
-    }
-    if state[k].shape() != p.shape() {
-        return Err(AutodiffError::shape(
-            name,
-            &[state[k].shape(), p.shape()],
-            format!("parameter {k} changed shape between steps"),
-        ));
+/// Checks every `(parameter, gradient)` pair against each other and against the state kept
+/// from earlier steps, before anything is updated: a failed step changes nothing.
+fn check_all<T: Real>(name: &'static str, pairs: &[(&mut Tensor<T>, &Tensor<T>)], states: &[&Vec<Tensor<T>>]) -> Result<()> {
+    for (k, (p, g)) in pairs.iter().enumerate() {
+        if p.shape() != g.shape() {
+            return Err(AutodiffError::shape(name, &[p.shape(), g.shape()], format!("gradient {k} does not match its parameter")));
+        }
+        for state in states {
+            if let Some(s) = state.get(k) {
+                if s.shape() != p.shape() {
+                    return Err(AutodiffError::shape(
+                        name,
+                        &[s.shape(), p.shape()],
+                        format!("parameter {k} changed shape between steps"),
+                    ));
+                }
+            }
+        }
     }
     Ok(())
 }
 
-fn check_grad<T: Real>(name: &'static str, k: usize, p: &Tensor<T>, g: &Tensor<T>) -> Result<()> {
-    if p.shape() != g.shape() {
-        return Err(AutodiffError::shape(name, &[p.shape(), g.shape()], format!("gradient {k} does not match its parameter")));
+/// State of parameter `k`, created as zeros on its first step.
+fn state_for<'a, T: Real>(state: &'a mut Vec<Tensor<T>>, k: usize, p: &Tensor<T>) -> &'a mut Tensor<T> {
+    if state.len() == k {
+        state.push(Tensor::zeros(p.raw_dim()));
     }
-    Ok(())
+    &mut state[k]
 }
 
 /// Stochastic gradient descent with (heavy-ball) momentum: `v = mu v + g; p -= lr v`.
@@ -46,12 +55,12 @@ impl<T: Real> Sgd<T> {
             velocity: Vec::new(),
         }
     }
-    /// One step over `(parameter, gradient)` pairs.
+    /// One step over `(parameter, gradient)` pairs. On a shape error nothing is updated.
     pub fn step<'a>(&mut self, params: impl IntoIterator<Item = (&'a mut Tensor<T>, &'a Tensor<T>)>) -> Result<()> {
-        for (k, (p, g)) in params.into_iter().enumerate() {
-            check_grad("sgd", k, p, g)?;
-            check_state("sgd", &mut self.velocity, k, p)?;
-            let v = &mut self.velocity[k];
+        let pairs: Vec<_> = params.into_iter().collect();
+        check_all("sgd", &pairs, &[&self.velocity])?;
+        for (k, (p, g)) in pairs.into_iter().enumerate() {
+            let v = state_for(&mut self.velocity, k, p);
             let (mu, lr) = (self.momentum, self.lr);
             ndarray::Zip::from(&mut *p).and(v).and(g).for_each(|p, v, &g| {
                 *v = mu * *v + g;
@@ -95,17 +104,19 @@ impl<T: Real> Adam<T> {
     pub fn steps(&self) -> i32 {
         self.t
     }
-    /// One step over `(parameter, gradient)` pairs.
+    /// One step over `(parameter, gradient)` pairs. On a shape error nothing is updated (not
+    /// even the step count).
     pub fn step<'a>(&mut self, params: impl IntoIterator<Item = (&'a mut Tensor<T>, &'a Tensor<T>)>) -> Result<()> {
+        let pairs: Vec<_> = params.into_iter().collect();
+        check_all("adam", &pairs, &[&self.m, &self.v])?;
         self.t += 1;
         let one = T::one();
         let bc1 = one - self.beta1.powi(self.t);
         let bc2 = one - self.beta2.powi(self.t);
-        for (k, (p, g)) in params.into_iter().enumerate() {
-            check_grad("adam", k, p, g)?;
-            check_state("adam", &mut self.m, k, p)?;
-            check_state("adam", &mut self.v, k, p)?;
+        for (k, (p, g)) in pairs.into_iter().enumerate() {
             let (b1, b2, lr, eps) = (self.beta1, self.beta2, self.lr, self.eps);
+            state_for(&mut self.m, k, p);
+            state_for(&mut self.v, k, p);
             ndarray::Zip::from(&mut *p)
                 .and(&mut self.m[k])
                 .and(&mut self.v[k])

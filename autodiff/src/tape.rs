@@ -97,6 +97,18 @@ pub struct Gradients<T: Real> {
     grads: Vec<Option<Tensor<T>>>,
 }
 
+impl<T: Real> fmt::Debug for Gradients<T> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let held: Vec<_> = self
+            .grads
+            .iter()
+            .enumerate()
+            .filter_map(|(i, g)| g.as_ref().map(|g| (i, g.shape().to_vec())))
+            .collect();
+        f.debug_struct("Gradients").field("held", &held).finish()
+    }
+}
+
 impl<T: Real> Gradients<T> {
     /// Gradient of a leaf (or `None` if the loss does not depend on it or it does not
     /// require gradients).
@@ -209,10 +221,16 @@ impl<T: Real> Tape<T> {
 
     /// Runs `f` with gradient recording off: ops inside produce constants.
     pub fn no_grad<R>(&self, f: impl FnOnce() -> R) -> R {
+        // Restores the depth even when `f` unwinds.
+        struct Guard<'a>(&'a Cell<u32>);
+        impl Drop for Guard<'_> {
+            fn drop(&mut self) {
+                self.0.set(self.0.get() - 1);
+            }
+        }
         self.no_grad_depth.set(self.no_grad_depth.get() + 1);
-        let r = f();
-        self.no_grad_depth.set(self.no_grad_depth.get() - 1);
-        r
+        let _guard = Guard(&self.no_grad_depth);
+        f()
     }
 
     /// True inside [`Tape::no_grad`].
@@ -241,7 +259,9 @@ impl<T: Real> Tape<T> {
     }
 
     /// Records `op` applied to `inputs`; returns its outputs. `n_outputs` is the number of
-    /// outputs the op produces (used to shape poisoned results when an input is poisoned).
+    /// outputs the op produces (used to shape poisoned results when an input is poisoned); a
+    /// forward returning another number of outputs poisons the tape with an
+    /// [`AutodiffError::Op`] naming the op.
     pub fn apply_multi<'t, O: Op<T>>(
         &'t self,
         mut op: O,
@@ -272,7 +292,14 @@ impl<T: Real> Tape<T> {
         requires_grad &= !self.is_no_grad();
         let refs: SmallVec<[&Tensor<T>; 4]> = values.iter().map(|a| &**a).collect();
         let outs = match op.forward(&refs) {
-            Ok(o) => o,
+            Ok(o) if o.len() == n_outputs => o,
+            Ok(o) => {
+                let err = AutodiffError::Op {
+                    op: op.name(),
+                    detail: format!("forward returned {} outputs, {} expected", o.len(), n_outputs),
+                };
+                return self.poison(err, n_outputs);
+            }
             Err(e) => return self.poison(e, n_outputs),
         };
         let mut inner = self.inner.borrow_mut();

@@ -33,6 +33,17 @@ pub fn from_vec<T: Real>(shape: &[usize], data: Vec<T>) -> Result<Tensor<T>> {
     Ok(ArrayD::from_shape_vec(IxDyn(shape), data).expect("length checked"))
 }
 
+/// `x` in row-major (standard) layout, copied only when it is not already. Ops return their
+/// outputs in this layout, so that code reading a tensor as a flat row-major slice works on
+/// any op's output.
+pub fn into_standard<T: Real>(x: Tensor<T>) -> Tensor<T> {
+    if x.is_standard_layout() {
+        x
+    } else {
+        x.as_standard_layout().into_owned()
+    }
+}
+
 /// A 0-dimensional tensor holding `x`.
 pub fn scalar<T: Real>(x: T) -> Tensor<T> {
     ArrayD::from_elem(IxDyn(&[]), x)

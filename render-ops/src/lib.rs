@@ -1,1 +1,15 @@
 //! Rendering ops.
+pub mod transform;
+pub mod raster;
+pub mod camera;
+pub mod io;
+pub mod mesh;
+pub mod obj;
+pub mod scene;
+pub mod shade;
+pub mod texture;
+pub mod blend;
+pub mod error;
+pub mod interpolate;
+pub mod rasterize;
+pub mod pipeline;

@@ -113,7 +113,8 @@ impl<T: Real> Op<T> for UnaryOp<T> {
             Unary::Cos => map1(x, |v| v.cos()),
             Unary::Tanh => map1(x, |v| v.tanh()),
             Unary::Sigmoid => map1(x, sigmoid),
-            Unary::Relu => map1(x, |v| if v > z { v } else { z }),
+            // Written so that NaN passes through (`f32::max` would drop it).
+            Unary::Relu => map1(x, |v| if v < z { z } else { v }),
             Unary::Abs => map1(x, |v| v.abs()),
             Unary::Square => map1(x, |v| v * v),
             Unary::Recip => map1(x, |v| v.recip()),
@@ -127,7 +128,15 @@ impl<T: Real> Op<T> for UnaryOp<T> {
                 if !(lo <= hi) {
                     return Err(AutodiffError::invalid("clamp", format!("lo {lo} > hi {hi}")));
                 }
-                map1(x, |v| v.max(lo).min(hi))
+                map1(x, |v| {
+                    if v < lo {
+                        lo
+                    } else if v > hi {
+                        hi
+                    } else {
+                        v
+                    }
+                })
             }
         };
         Ok(vec![y])
@@ -228,8 +237,25 @@ impl<T: Real> Op<T> for BinaryOp {
             Binary::Mul => map2(&av, &bv, |x, y| x * y),
             Binary::Div => map2(&av, &bv, |x, y| x / y),
             Binary::Pow => map2(&av, &bv, |x, y| x.powf(y)),
-            Binary::Min => map2(&av, &bv, |x, y| if x == y { half * (x + y) } else { x.min(y) }),
-            Binary::Max => map2(&av, &bv, |x, y| if x == y { half * (x + y) } else { x.max(y) }),
+            // Ties (and NaN, which `f32::min`/`max` would drop) give the mean: NaN propagates.
+            Binary::Min => map2(&av, &bv, |x, y| {
+                if x < y {
+                    x
+                } else if y < x {
+                    y
+                } else {
+                    half * (x + y)
+                }
+            }),
+            Binary::Max => map2(&av, &bv, |x, y| {
+                if x > y {
+                    x
+                } else if y > x {
+                    y
+                } else {
+                    half * (x + y)
+                }
+            }),
         };
         Ok(vec![y])
     }

@@ -6,7 +6,7 @@ use ndarray::{ArrayD, Axis, IxDyn};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::Tensor;
+use crate::tensor::{into_standard, Tensor};
 use crate::Real;
 
 /// Rows (sub-tensors along `axis`) picked by `indices`, repeats allowed.
@@ -34,7 +34,7 @@ impl<T: Real> Op<T> for IndexSelectOp {
                 format!("index {bad} (position {k}) out of range for size {n} on axis {}", self.axis),
             ));
         }
-        Ok(vec![x.select(Axis(self.axis), &self.indices)])
+        Ok(vec![into_standard(x.select(Axis(self.axis), &self.indices))])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {

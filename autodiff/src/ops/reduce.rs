@@ -13,15 +13,21 @@ pub fn check_axes(op: &'static str, shape: &[usize], axes: &[usize]) -> Result<V
     let mut a = axes.to_vec();
     a.sort_unstable();
     for w in a.windows(2) {
-        if w[0] == w[1] {
+        if w[0] == w[1] && w[0] != usize::MAX {
             return Err(AutodiffError::index(op, &[shape], format!("axis {} repeated", w[0])));
         }
     }
     if let Some(&bad) = a.iter().find(|&&x| x >= shape.len()) {
+        // Negative axes below -ndim arrive as usize::MAX (see var_ops).
+        let which = if bad == usize::MAX {
+            "a negative axis".to_string()
+        } else {
+            format!("axis {bad}")
+        };
         return Err(AutodiffError::index(
             op,
             &[shape],
-            format!("axis {bad} out of range for {} dimensions", shape.len()),
+            format!("{which} out of range for {} dimensions", shape.len()),
         ));
     }
     Ok(a)
@@ -114,10 +120,12 @@ impl<T: Real> Op<T> for SumOp {
             return Ok(vec![None]);
         }
         let shape = ctx.inputs[0].shape();
-        let g = ctx.grad_outputs[0]
+        // A gradient in another memory layout is read in row-major order first.
+        let g = ctx.grad_outputs[0].as_standard_layout();
+        let g = g
             .view()
             .into_shape_with_order(IxDyn(&keep_shape(shape, &self.resolved)))
-            .expect("same count");
+            .expect("same count, standard layout");
         let count: usize = self.resolved.iter().map(|&a| shape[a]).product();
         let scale = if self.mean {
             T::one() / T::from_usize_c(count.max(1))
@@ -225,7 +233,11 @@ impl<T: Real> Op<T> for LogSumExpOp {
         let ax = Axis(self.axis);
         let mut y = ArrayD::<T>::zeros(IxDyn(&reduced_shape(x.shape(), &[self.axis], false)));
         Zip::from(&mut y).and(x.lanes(ax)).for_each(|y, lane| {
-            let m = lane.iter().copied().fold(T::neg_infinity(), T::max);
+            // A NaN-propagating maximum (`T::max` would skip NaN and let +inf hide it).
+            let m = lane
+                .iter()
+                .copied()
+                .fold(T::neg_infinity(), |a, b| if b > a || b.is_nan() { b } else { a });
             *y = if m.is_infinite() {
                 m
             } else {

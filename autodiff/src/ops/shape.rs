@@ -4,7 +4,7 @@ use ndarray::{ArrayD, Axis, IxDyn, Slice};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{broadcast_shapes, sum_to_shape, Tensor};
+use crate::tensor::{broadcast_shapes, into_standard, sum_to_shape, Tensor};
 use crate::Real;
 
 /// Reshape to a new shape with the same number of elements (row-major order).
@@ -144,7 +144,7 @@ impl<T: Real> Op<T> for ConcatOp {
             return Err(AutodiffError::index("concat", &shapes, format!("axis {} out of range", self.0)));
         }
         ndarray::concatenate(Axis(self.0), &views)
-            .map(|y| vec![y])
+            .map(|y| vec![into_standard(y)])
             .map_err(|_| AutodiffError::shape("concat", &shapes, format!("shapes differ off axis {}", self.0)))
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
@@ -181,7 +181,7 @@ impl<T: Real> Op<T> for StackOp {
         }
         let views: Vec<_> = inputs.iter().map(|t| t.view()).collect();
         ndarray::stack(Axis(self.0), &views)
-            .map(|y| vec![y])
+            .map(|y| vec![into_standard(y)])
             .map_err(|_| AutodiffError::shape("stack", &shapes, "stack needs equal shapes"))
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {

@@ -73,7 +73,10 @@ impl<T: Real> Op<T> for NormalizeOp<T> {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let x = inputs[0];
         if !(self.eps > T::zero()) {
-            return Err(AutodiffError::invalid("normalize", format!("eps must be > 0, got {}", self.eps)));
+            return Err(AutodiffError::invalid(
+                "normalize",
+                format!("eps must be > 0, got {} (input shape {:?})", self.eps, x.shape()),
+            ));
         }
         if x.ndim() == 0 {
             return Err(AutodiffError::shape("normalize", &[x.shape()], "needs at least one axis"));
@@ -81,7 +84,9 @@ impl<T: Real> Op<T> for NormalizeOp<T> {
         let ax = Axis(x.ndim() - 1);
         let mut y = x.to_owned();
         for mut lane in y.lanes_mut(ax) {
-            let n = lane.iter().map(|&v| v * v).sum::<T>().sqrt().max(self.eps);
+            let len = lane.iter().map(|&v| v * v).sum::<T>().sqrt();
+            // Not `len.max(eps)`, which would turn a NaN length into eps.
+            let n = if len < self.eps { self.eps } else { len };
             lane.mapv_inplace(|v| v / n);
         }
         Ok(vec![y])

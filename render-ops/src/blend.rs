@@ -1,0 +1,83 @@
+//! Compositing per-fragment colours into an image. The hard (z-buffer) blend takes each
+//! pixel's nearest fragment and composites it over the background: output [H, W, C + 1] with
+//! the coverage (0 or 1) as the last channel (alpha).
+
+use std::sync::Arc;
+
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use ndarray::{ArrayD, IxDyn};
+use rayon::prelude::*;
+
+use crate::error::RenderError;
+use crate::raster::Fragments;
+
+struct HardBlendOp<T: Real> {
+    fragments: Arc<Fragments<T>>,
+    background: Vec<T>,
+}
+
+impl<T: Real> Op<T> for HardBlendOp<T> {
+    fn name(&self) -> &'static str {
+        "blend_hard"
+    }
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+        let col = inputs[0].as_standard_layout();
+        let f = &self.fragments;
+        let (h, w) = (f.height, f.width);
+        let c = self.background.len();
+        if col.shape() != [f.face.len(), c] {
+            return Err(AutodiffError::shape(
+                "blend_hard",
+                &[col.shape()],
+                format!("fragment colours must be [{}, {c}] (fragments x background channels)", f.face.len()),
+            ));
+        }
+        let cs = col.as_slice().expect("std");
+        let mut img = vec![T::zero(); h * w * (c + 1)];
+        img.par_chunks_mut(w * (c + 1)).enumerate().for_each(|(row, out)| {
+            for (x, px) in out.chunks_mut(c + 1).enumerate() {
+                let p = row * w + x;
+                let (s, e) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
+                if s < e {
+                    px[..c].copy_from_slice(&cs[s * c..(s + 1) * c]);
+                    px[c] = T::one();
+                } else {
+                    px[..c].copy_from_slice(&self.background);
+                }
+            }
+        });
+        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c")])
+    }
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        if !ctx.needs_grad[0] {
+            return Ok(vec![None]);
+        }
+        let f = &self.fragments;
+        let c = self.background.len();
+        let g = ctx.grad_outputs[0].as_standard_layout();
+        let gs = g.as_slice().expect("std");
+        let mut gc = vec![T::zero(); f.face.len() * c];
+        // Each fragment is the first of at most one pixel: a direct write per pixel.
+        for p in 0..f.width * f.height {
+            let (s, e) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
+            if s < e {
+                gc[s * c..(s + 1) * c].copy_from_slice(&gs[p * (c + 1)..p * (c + 1) + c]);
+            }
+        }
+        Ok(vec![Some(ArrayD::from_shape_vec(IxDyn(&[f.face.len(), c]), gc).expect("n c"))])
+    }
+}
+
+/// Hard z-buffer compositing of fragment colours [N, C] over `background` (C values):
+/// an image [H, W, C + 1] whose last channel is the coverage.
+pub fn blend_hard<'t, T: Real>(
+    colors: Var<'t, T>,
+    fragments: &Arc<Fragments<T>>,
+    background: &[T],
+) -> Result<Var<'t, T>, RenderError> {
+    let op = HardBlendOp {
+        fragments: fragments.clone(),
+        background: background.to_vec(),
+    };
+    Ok(colors.tape().apply(op, &[colors]))
+}

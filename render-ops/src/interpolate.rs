@@ -1,0 +1,117 @@
+//! Per-fragment interpolation of vertex attributes: `a_n = sum_k b_nk A[f_n,k]` for fragment n
+//! of face f_n with barycentrics b_n. Gradients flow to the attributes (scatter-added in
+//! fragment order, deterministic) and to the barycentrics (hence to positions).
+
+use std::sync::Arc;
+
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use ndarray::{ArrayD, IxDyn};
+use rayon::prelude::*;
+
+use crate::error::RenderError;
+use crate::rasterize::Rasterized;
+use crate::raster::Fragments;
+
+struct InterpolateOp<T: Real> {
+    fragments: Arc<Fragments<T>>,
+    faces: Arc<Vec<[u32; 3]>>,
+}
+
+const ROWS_PER_TASK: usize = 1024;
+
+impl<T: Real> Op<T> for InterpolateOp<T> {
+    fn name(&self) -> &'static str {
+        "interpolate"
+    }
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+        let (attr, bary) = (inputs[0].as_standard_layout(), inputs[1].as_standard_layout());
+        let n = self.fragments.face.len();
+        if attr.ndim() != 2 || bary.shape() != [n, 3] {
+            return Err(AutodiffError::shape(
+                "interpolate",
+                &[attr.shape(), bary.shape()],
+                format!("attributes must be [V, C] and barycentrics [{n}, 3]"),
+            ));
+        }
+        let c = attr.shape()[1];
+        let a = attr.as_slice().expect("standard");
+        let b = bary.as_slice().expect("standard");
+        let mut out = vec![T::zero(); n * c];
+        out.par_chunks_mut(ROWS_PER_TASK * c.max(1))
+            .enumerate()
+            .for_each(|(blk, chunk)| {
+                for (r, o) in chunk.chunks_mut(c.max(1)).enumerate() {
+                    let i = blk * ROWS_PER_TASK + r;
+                    let f = self.faces[self.fragments.face[i] as usize];
+                    for ch in 0..c {
+                        o[ch] = b[3 * i] * a[f[0] as usize * c + ch]
+                            + b[3 * i + 1] * a[f[1] as usize * c + ch]
+                            + b[3 * i + 2] * a[f[2] as usize * c + ch];
+                    }
+                }
+            });
+        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[n, c]), out).expect("n x c")])
+    }
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        let attr = ctx.inputs[0].as_standard_layout();
+        let bary = ctx.inputs[1].as_standard_layout();
+        let g = ctx.grad_outputs[0].as_standard_layout();
+        let (a, b, g) = (
+            attr.as_slice().expect("std"),
+            bary.as_slice().expect("std"),
+            g.as_slice().expect("std"),
+        );
+        let c = attr.shape()[1];
+        let n = self.fragments.face.len();
+        let g_attr = ctx.needs_grad[0].then(|| {
+            let mut ga = vec![T::zero(); a.len()];
+            for i in 0..n {
+                let f = self.faces[self.fragments.face[i] as usize];
+                for k in 0..3 {
+                    let bk = b[3 * i + k];
+                    let base = f[k] as usize * c;
+                    for ch in 0..c {
+                        ga[base + ch] += bk * g[i * c + ch];
+                    }
+                }
+            }
+            ArrayD::from_shape_vec(IxDyn(attr.shape()), ga).expect("same shape")
+        });
+        let g_bary = ctx.needs_grad[1].then(|| {
+            let mut gb = vec![T::zero(); 3 * n];
+            gb.par_chunks_mut(3 * ROWS_PER_TASK)
+                .enumerate()
+                .for_each(|(blk, chunk)| {
+                    for (r, o) in chunk.chunks_mut(3).enumerate() {
+                        let i = blk * ROWS_PER_TASK + r;
+                        let f = self.faces[self.fragments.face[i] as usize];
+                        for k in 0..3 {
+                            let base = f[k] as usize * c;
+                            o[k] = (0..c).map(|ch| a[base + ch] * g[i * c + ch]).sum();
+                        }
+                    }
+                });
+            ArrayD::from_shape_vec(IxDyn(&[n, 3]), gb).expect("n x 3")
+        });
+        Ok(vec![g_attr, g_bary])
+    }
+}
+
+/// Vertex attributes [V, C] interpolated at every fragment: [N, C].
+pub fn interpolate<'t, T: Real>(attributes: Var<'t, T>, r: &Rasterized<'t, T>) -> Result<Var<'t, T>, RenderError> {
+    let shape = attributes.shape();
+    let nv = r.faces.iter().flatten().map(|&i| i as usize + 1).max().unwrap_or(0);
+    if shape.len() != 2 || shape[0] < nv {
+        return Err(AutodiffError::shape(
+            "interpolate",
+            &[&shape],
+            format!("attributes must be [V, C] with V >= {nv} (the faces' largest index + 1)"),
+        )
+        .into());
+    }
+    let op = InterpolateOp {
+        fragments: r.fragments.clone(),
+        faces: r.faces.clone(),
+    };
+    Ok(attributes.tape().apply(op, &[attributes, r.bary]))
+}

@@ -1,0 +1,356 @@
+//! Packed fragments: a CSR over pixels holding, for each covered pixel, its nearest fragments.
+
+use std::ops::Range;
+
+use autodiff::Real;
+use rayon::prelude::*;
+
+use super::bin::Bins;
+use super::edge::Setup;
+use super::{RasterError, RasterSettings, TILE_SIZE};
+
+/// Fragments of a rasterized image, packed: only covered pixels hold fragments.
+///
+/// The fragments of pixel `p = row * width + col` are `offsets[p]..offsets[p + 1]`, nearest
+/// first (ties: lower face index first); every per-fragment array has `len()` entries.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Fragments<T> {
+    /// Image width.
+    pub width: usize,
+    /// Image height.
+    pub height: usize,
+    /// Most fragments a pixel may hold (`faces_per_pixel`).
+    pub k: usize,
+    /// `height * width + 1` offsets into the per-fragment arrays.
+    pub offsets: Vec<u32>,
+    /// Face index of each fragment.
+    pub face: Vec<u32>,
+    /// Barycentrics with respect to the original (unclipped) triangle: perspective-correct, or
+    /// affine in screen space when `perspective_correct` is off.
+    pub bary: Vec<[T; 3]>,
+    /// NDC depth `z_clip / w_clip` at the fragment, in `[-1, 1]`; smaller is nearer.
+    pub depth: Vec<T>,
+    /// Interpolated `w_clip` (the view-space depth for a perspective camera).
+    pub view_depth: Vec<T>,
+    /// Derivative of `bary` per pixel step to the right (`col + 1`).
+    pub dbary_dx: Vec<[T; 3]>,
+    /// Derivative of `bary` per pixel step down (`row + 1`).
+    pub dbary_dy: Vec<[T; 3]>,
+}
+
+/// One fragment, as returned by [`Fragments::get`] and [`Fragments::iter_pixel`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fragment<T> {
+    /// Index into the per-fragment arrays.
+    pub index: usize,
+    /// Face index.
+    pub face: u32,
+    /// Barycentrics of the face's vertices.
+    pub bary: [T; 3],
+    /// NDC depth.
+    pub depth: T,
+    /// Interpolated `w_clip`.
+    pub view_depth: T,
+    /// `d bary / d col`.
+    pub dbary_dx: [T; 3],
+    /// `d bary / d row`.
+    pub dbary_dy: [T; 3],
+}
+
+impl<T: Real> Fragments<T> {
+    /// An image with no fragments.
+    pub fn empty(width: usize, height: usize, k: usize) -> Self {
+        Self {
+            width,
+            height,
+            k,
+            offsets: vec![0; width * height + 1],
+            face: Vec::new(),
+            bary: Vec::new(),
+            depth: Vec::new(),
+            view_depth: Vec::new(),
+            dbary_dx: Vec::new(),
+            dbary_dy: Vec::new(),
+        }
+    }
+
+    /// Number of pixels, `width * height`.
+    pub fn num_pixels(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Total number of fragments.
+    pub fn len(&self) -> usize {
+        self.face.len()
+    }
+
+    /// No fragment at all.
+    pub fn is_empty(&self) -> bool {
+        self.face.is_empty()
+    }
+
+    /// Pixel index of `(row, col)`.
+    pub fn pixel_index(&self, row: usize, col: usize) -> usize {
+        row * self.width + col
+    }
+
+    /// `(row, col)` of pixel `p`.
+    pub fn pixel_coords(&self, p: usize) -> (usize, usize) {
+        (p / self.width, p % self.width)
+    }
+
+    /// Fragment indices of pixel `p`, nearest first.
+    pub fn pixel_range(&self, p: usize) -> Range<usize> {
+        self.offsets[p] as usize..self.offsets[p + 1] as usize
+    }
+
+    /// Number of fragments of pixel `p` (at most `k`).
+    pub fn count(&self, p: usize) -> usize {
+        (self.offsets[p + 1] - self.offsets[p]) as usize
+    }
+
+    /// Number of pixels with at least one fragment.
+    pub fn covered_pixels(&self) -> usize {
+        self.offsets.windows(2).filter(|w| w[1] > w[0]).count()
+    }
+
+    /// Fragment `i`.
+    pub fn get(&self, i: usize) -> Fragment<T> {
+        Fragment {
+            index: i,
+            face: self.face[i],
+            bary: self.bary[i],
+            depth: self.depth[i],
+            view_depth: self.view_depth[i],
+            dbary_dx: self.dbary_dx[i],
+            dbary_dy: self.dbary_dy[i],
+        }
+    }
+
+    /// Fragments of pixel `p`, nearest first.
+    pub fn iter_pixel(&self, p: usize) -> impl ExactSizeIterator<Item = Fragment<T>> + '_ {
+        self.pixel_range(p).map(move |i| self.get(i))
+    }
+
+    /// Nearest fragment of pixel `p`, if any.
+    pub fn nearest(&self, p: usize) -> Option<Fragment<T>> {
+        self.iter_pixel(p).next()
+    }
+
+    /// Pixel index of every fragment (the inverse of the CSR), for gathers and scatters.
+    pub fn fragment_pixels(&self) -> Vec<u32> {
+        let mut out = vec![0u32; self.len()];
+        for p in 0..self.num_pixels() {
+            out[self.pixel_range(p)].fill(p as u32);
+        }
+        out
+    }
+
+    /// Calls `f(pixel, fragment range)` for every covered pixel in pixel order.
+    pub fn for_each_covered(&self, mut f: impl FnMut(usize, Range<usize>)) {
+        for p in 0..self.num_pixels() {
+            let r = self.pixel_range(p);
+            if !r.is_empty() {
+                f(p, r);
+            }
+        }
+    }
+
+    /// Pixel of fragment `i` (binary search in `offsets`).
+    pub fn pixel_of(&self, i: usize) -> usize {
+        self.offsets.partition_point(|&o| o as usize <= i) - 1
+    }
+
+    /// Checks the internal consistency of the layout (lengths, monotone offsets, `<= k` per pixel).
+    pub fn validate(&self) -> Result<(), RasterError> {
+        let bad = |m: String| Err(RasterError::FragmentsMismatch(m));
+        let n = self.len();
+        if self.offsets.len() != self.num_pixels() + 1 {
+            return bad(format!(
+                "offsets has length {}, expected {}",
+                self.offsets.len(),
+                self.num_pixels() + 1
+            ));
+        }
+        if self.offsets[0] != 0 || *self.offsets.last().unwrap() as usize != n {
+            return bad(format!("offsets must run from 0 to {n}"));
+        }
+        if let Some(p) = self
+            .offsets
+            .windows(2)
+            .position(|w| w[1] < w[0] || (w[1] - w[0]) as usize > self.k)
+        {
+            return bad(format!("pixel {p} has a bad fragment range"));
+        }
+        for (what, len) in [
+            ("bary", self.bary.len()),
+            ("depth", self.depth.len()),
+            ("view_depth", self.view_depth.len()),
+            ("dbary_dx", self.dbary_dx.len()),
+            ("dbary_dy", self.dbary_dy.len()),
+        ] {
+            if len != n {
+                return bad(format!("{what} has length {len}, expected {n}"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Fragments of one tile in tile-local row-major pixel order, before their values are computed.
+pub(crate) struct TileOut<T> {
+    /// Setups (with face index) of the faces that own fragments here.
+    pub setups: Vec<(Setup, u32)>,
+    /// Setup index and depth of each fragment.
+    pub fsetup: Vec<u32>,
+    pub depth: Vec<T>,
+    /// Fragment count per local pixel (`local_row * TILE_SIZE + local_col`); empty if none.
+    pub counts: Vec<u16>,
+    /// `row_start[lr]..row_start[lr + 1]` are the fragments of local row `lr`.
+    pub row_start: Vec<u32>,
+}
+
+impl<T> TileOut<T> {
+    pub fn empty() -> Self {
+        Self {
+            setups: Vec::new(),
+            fsetup: Vec::new(),
+            depth: Vec::new(),
+            counts: Vec::new(),
+            row_start: Vec::new(),
+        }
+    }
+
+    /// Fragments in local row `lr`.
+    #[inline]
+    fn row_len(&self, lr: usize) -> usize {
+        if self.fsetup.is_empty() {
+            0
+        } else {
+            (self.row_start[lr + 1] - self.row_start[lr]) as usize
+        }
+    }
+}
+
+/// Mutable output slices of one image row.
+struct RowOut<'a, T> {
+    row: usize,
+    base: usize,
+    offsets: &'a mut [u32],
+    face: &'a mut [u32],
+    bary: &'a mut [[T; 3]],
+    depth: &'a mut [T],
+    view_depth: &'a mut [T],
+    dx: &'a mut [[T; 3]],
+    dy: &'a mut [[T; 3]],
+}
+
+fn split_sizes<'a, X>(mut v: &'a mut [X], sizes: &[usize]) -> Vec<&'a mut [X]> {
+    let mut out = Vec::with_capacity(sizes.len());
+    for &n in sizes {
+        let (a, b) = v.split_at_mut(n);
+        out.push(a);
+        v = b;
+    }
+    out
+}
+
+/// Assembles the tiles' fragments into the packed pixel-order layout, computing their values,
+/// in parallel over image rows (each a contiguous run of pixels and fragments). The result does
+/// not depend on the thread count.
+pub(crate) fn assemble<T: Real>(
+    tiles: Vec<TileOut<T>>,
+    bins: &Bins,
+    s: &RasterSettings,
+) -> Result<Fragments<T>, RasterError> {
+    let (width, height, k) = (s.width, s.height, s.faces_per_pixel);
+    let tx_n = bins.tiles_x;
+    let row_frags: Vec<usize> = (0..height)
+        .map(|r| {
+            let (ty, lr) = (r / TILE_SIZE, r % TILE_SIZE);
+            tiles[ty * tx_n..(ty + 1) * tx_n].iter().map(|t| t.row_len(lr)).sum()
+        })
+        .collect();
+    let total: usize = row_frags.iter().sum();
+    if total > u32::MAX as usize {
+        return Err(RasterError::TooManyFragments { fragments: total });
+    }
+    let zero3 = [T::zero(); 3];
+    let mut out = Fragments {
+        width,
+        height,
+        k,
+        offsets: vec![0u32; width * height + 1],
+        face: vec![0u32; total],
+        bary: vec![zero3; total],
+        depth: vec![T::zero(); total],
+        view_depth: vec![T::zero(); total],
+        dbary_dx: vec![zero3; total],
+        dbary_dy: vec![zero3; total],
+    };
+    out.offsets[width * height] = total as u32;
+    let mut bases = Vec::with_capacity(height);
+    let mut acc = 0usize;
+    for &n in &row_frags {
+        bases.push(acc);
+        acc += n;
+    }
+    let row_px = vec![width; height];
+    let rows: Vec<RowOut<'_, T>> = split_sizes(&mut out.offsets[..width * height], &row_px)
+        .into_iter()
+        .zip(split_sizes(&mut out.face, &row_frags))
+        .zip(split_sizes(&mut out.bary, &row_frags))
+        .zip(split_sizes(&mut out.depth, &row_frags))
+        .zip(split_sizes(&mut out.view_depth, &row_frags))
+        .zip(split_sizes(&mut out.dbary_dx, &row_frags))
+        .zip(split_sizes(&mut out.dbary_dy, &row_frags))
+        .enumerate()
+        .map(
+            |(row, ((((((offsets, face), bary), depth), view_depth), dx), dy))| RowOut {
+                row,
+                base: bases[row],
+                offsets,
+                face,
+                bary,
+                depth,
+                view_depth,
+                dx,
+                dy,
+            },
+        )
+        .collect();
+    let persp = s.perspective_correct;
+    rows.into_par_iter().with_min_len(4).for_each(|ro| {
+        let (ty, lr) = (ro.row / TILE_SIZE, ro.row % TILE_SIZE);
+        let rf = ro.row as f64;
+        let mut pos = 0usize;
+        for (tx, tile) in tiles[ty * tx_n..(ty + 1) * tx_n].iter().enumerate() {
+            let c0 = tx * TILE_SIZE;
+            let c1 = (c0 + TILE_SIZE).min(width);
+            let offs = &mut ro.offsets[c0..c1];
+            if tile.row_len(lr) == 0 {
+                offs.fill((ro.base + pos) as u32);
+                continue;
+            }
+            let mut i = tile.row_start[lr] as usize;
+            let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + (c1 - c0)];
+            for (j, (o, &n)) in offs.iter_mut().zip(counts).enumerate() {
+                *o = (ro.base + pos) as u32;
+                let col = (c0 + j) as f64;
+                for _ in 0..n {
+                    let (st, face) = &tile.setups[tile.fsetup[i] as usize];
+                    let (bary, vd, dx, dy) = st.values::<T>(col, rf, persp);
+                    ro.face[pos] = *face;
+                    ro.bary[pos] = bary;
+                    ro.depth[pos] = tile.depth[i];
+                    ro.view_depth[pos] = vd;
+                    ro.dx[pos] = dx;
+                    ro.dy[pos] = dy;
+                    pos += 1;
+                    i += 1;
+                }
+            }
+        }
+    });
+    Ok(out)
+}

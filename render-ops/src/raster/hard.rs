@@ -1,0 +1,518 @@
+//! The hard rasterizer: tiled z-buffer forward with K nearest fragments, and the interior
+//! (fixed-visibility) vector-Jacobian product of barycentrics and depths.
+
+use autodiff::Real;
+use rayon::prelude::*;
+
+use super::bin::{bin_faces, Bins};
+use super::clip::{ceil_u, floor_u, to_screen, Rect};
+use super::edge::Setup;
+use super::fragments::{assemble, Fragments, TileOut};
+use super::{validate_inputs, RasterError, RasterSettings, TILE_SIZE};
+
+/// Per-thread tile buffers, reused across tiles.
+struct Scratch {
+    /// K-buffer: NDC depths (`+inf` when empty) and indices into `setups`, `k` per local pixel,
+    /// nearest first.
+    depth: Vec<f64>,
+    idx: Vec<u32>,
+    setups: Vec<(Setup, u32)>,
+    /// Scratch for [`pack_tile`].
+    remap: Vec<u32>,
+}
+
+impl Scratch {
+    fn new(k: usize) -> Self {
+        let n = TILE_SIZE * TILE_SIZE;
+        Self {
+            depth: vec![f64::INFINITY; n * k],
+            idx: vec![0; n * k],
+            setups: Vec::new(),
+            remap: Vec::new(),
+        }
+    }
+}
+
+/// Read-only inputs of the tile pass.
+struct Ctx<'a> {
+    verts: &'a [[f64; 4]],
+    faces: &'a [[u32; 3]],
+    bins: &'a Bins,
+    s: &'a RasterSettings,
+}
+
+/// Rasterizes clip-space triangles into the `K` nearest fragments per pixel.
+///
+/// `clip` holds the clip-space position `(x, y, z, w)` of every vertex, `faces` counter-clockwise
+/// (front-facing) vertex triples. See the [module documentation](super) for the method: 2D
+/// homogeneous rasterization (Olano and Greer 1997) with exact Pineda edge functions and the
+/// top-left rule, near/far planes as a per-fragment test on NDC depth, `32 x 32` tiles in
+/// parallel. Fragments keep the barycentrics of the original triangle also when it crosses the
+/// near plane; in screen-space mode (`perspective_correct == false`) they are the affine
+/// barycentrics of the projected vertices (for a triangle crossing the eye plane `w = 0` these
+/// leave `[0, 1]`). Output is bit-identical for any number of rayon threads.
+///
+/// # Errors
+/// Empty or too large images, `faces_per_pixel` out of range, face indices out of range,
+/// non-finite clip coordinates, and more fragments than `u32` offsets hold.
+pub fn rasterize<T: Real>(
+    clip: &[[T; 4]],
+    faces: &[[u32; 3]],
+    s: &RasterSettings,
+) -> Result<Fragments<T>, RasterError> {
+    validate_inputs(clip, faces, s)?;
+    let nv = clip.len();
+    let mut verts = vec![[0.0f64; 4]; nv];
+    let mut proj = vec![[0.0f64; 2]; nv];
+    let mut outcodes = vec![0u8; nv];
+    verts
+        .par_iter_mut()
+        .zip(proj.par_iter_mut())
+        .zip(outcodes.par_iter_mut())
+        .zip(clip.par_iter())
+        .with_min_len(4096)
+        .for_each(|(((v, p), o), c)| (*v, *p, *o) = to_screen(c, s.width, s.height));
+    let bins = bin_faces(&verts, &proj, &outcodes, faces, s);
+    let ctx = Ctx {
+        verts: &verts,
+        faces,
+        bins: &bins,
+        s,
+    };
+    let tiles: Vec<TileOut<T>> = (0..bins.num_tiles())
+        .into_par_iter()
+        .map_init(
+            || Scratch::new(s.faces_per_pixel),
+            |sc, t| raster_tile(t, &ctx, sc),
+        )
+        .collect();
+    assemble(tiles, &bins, s)
+}
+
+/// Z-buffers the faces binned to tile `t` and finishes its fragments.
+fn raster_tile<T: Real>(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileOut<T> {
+    let (s, verts) = (ctx.s, ctx.verts);
+    let k = s.faces_per_pixel;
+    let rect = ctx.bins.tile_rect(t, s.width, s.height);
+    sc.depth.fill(f64::INFINITY);
+    sc.setups.clear();
+    for f in ctx.bins.tile_faces(t) {
+        let r = ctx.bins.rects[f as usize].intersect(&rect);
+        if r.is_empty() {
+            continue;
+        }
+        let face = ctx.faces[f as usize];
+        let v = [
+            verts[face[0] as usize],
+            verts[face[1] as usize],
+            verts[face[2] as usize],
+        ];
+        let Some(st) = Setup::new(&v, face, r.c1 as f64, r.r1 as f64) else {
+            continue;
+        };
+        if z_test_face(&st, &v, &r, &rect, verts, sc, k) {
+            sc.setups.push((st, f));
+        }
+    }
+    pack_tile(&rect, sc, k)
+}
+
+/// Tests the pixels of `r` (inside tile `rect`) against one face and inserts its fragments into
+/// the K-buffer under local face number `sc.setups.len()`. Returns whether any was inserted.
+#[inline]
+fn z_test_face(
+    st: &Setup,
+    v: &[[f64; 4]; 3],
+    r: &Rect,
+    rect: &Rect,
+    verts: &[[f64; 4]],
+    sc: &mut Scratch,
+    k: usize,
+) -> bool {
+    let li = sc.setups.len() as u32;
+    // NDC depth z/w is affine in screen space: sum_i e_i z_i / sum_i e_i w_i with
+    // sum_i e_i w_i = det, i.e. the plane d = dza col + dzb row + dzc. The near and far planes
+    // are the per-fragment test -1 <= d <= 1.
+    let z = [v[0][3], v[1][3], v[2][3]];
+    let dz = [
+        (st.a[0] * z[0] + st.a[1] * z[1] + st.a[2] * z[2]) * st.inv_det,
+        (st.b[0] * z[0] + st.b[1] * z[1] + st.b[2] * z[2]) * st.inv_det,
+        (st.c[0] * z[0] + st.c[1] * z[1] + st.c[2] * z[2]) * st.inv_det,
+    ];
+    let mut used = false;
+    let (w, h) = (r.c1 - r.c0 + 1, r.r1 - r.r0 + 1);
+    if w * h <= 4 {
+        // Tiny boxes: test every pixel, cheaper than setting up row spans.
+        for row in r.r0..=r.r1 {
+            let rf = row as f64;
+            let tr = st.row(rf);
+            let dr = dz[1] * rf + dz[2];
+            let first = (row - rect.r0) as usize * TILE_SIZE + (r.c0 - rect.c0) as usize;
+            for (j, col) in (r.c0..r.c1 + 1).enumerate() {
+                let p = (first + j) * k;
+                used |= test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p);
+            }
+        }
+        return used;
+    }
+    // Row spans. A covered pixel has a_i col + b_i row + c_i >= -bnd_i in real arithmetic on the
+    // computed coefficients (the bound covers their rounding), i.e. col >= al_i + be_i row for
+    // a_i > 0 and col <= al_i + be_i row for a_i < 0, with al_i = (-bnd_i - c_i) / a_i and
+    // be_i = -b_i / a_i; the margin covers the few ulps of computing that bound in f64 (NaN
+    // bounds are ignored by the comparisons, which is conservative). Edges with a_i == 0 bound
+    // the rows instead. Pixels in a span still get the exact test.
+    let bnd = st.bnd;
+    let (mut r0, mut r1) = (r.r0 as f64, r.r1 as f64);
+    let mut lal = [f64::NEG_INFINITY; 3];
+    let mut lbe = [0.0; 3];
+    let mut ral = [f64::INFINITY; 3];
+    let mut rbe = [0.0; 3];
+    for i in 0..3 {
+        let (a, b) = (st.a[i], st.b[i]);
+        let num = -bnd[i] - st.c[i];
+        if a != 0.0 {
+            let ia = 1.0 / a;
+            let (al, be) = (num * ia, -b * ia);
+            let m = 1e-12 * (al.abs() + be.abs() * r1) + 1e-9;
+            if a > 0.0 {
+                lal[i] = al - m;
+                lbe[i] = be;
+            } else {
+                ral[i] = al + m;
+                rbe[i] = be;
+            }
+        } else if b != 0.0 {
+            let q = num / b;
+            let m = 1e-12 * q.abs() + 1e-9;
+            if b > 0.0 {
+                r0 = if q - m > r0 { q - m } else { r0 };
+            } else {
+                r1 = if q + m < r1 { q + m } else { r1 };
+            }
+        } else if num > 0.0 {
+            return false;
+        }
+    }
+    if !(r0 <= r1) {
+        return false;
+    }
+    let (c0, c1) = (r.c0 as f64, r.c1 as f64);
+    for row in ceil_u(r0)..floor_u(r1) + 1 {
+        let rf = row as f64;
+        let mut lo = c0;
+        let mut hi = c1;
+        for i in 0..3 {
+            let ql = lal[i] + lbe[i] * rf;
+            let qr = ral[i] + rbe[i] * rf;
+            lo = if ql > lo { ql } else { lo };
+            hi = if qr < hi { qr } else { hi };
+        }
+        if !(lo <= hi) {
+            continue;
+        }
+        // c0 <= lo <= hi <= c1 here.
+        let (cl, cr) = (ceil_u(lo), floor_u(hi));
+        if cl > cr {
+            continue;
+        }
+        let tr = st.row(rf);
+        let dr = dz[1] * rf + dz[2];
+        let first = (row - rect.r0) as usize * TILE_SIZE + (cl - rect.c0) as usize;
+        for (j, col) in (cl..cr + 1).enumerate() {
+            let p = (first + j) * k;
+            used |= test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p);
+        }
+    }
+    used
+}
+
+/// Coverage, depth and K-buffer insertion of one pixel (K-buffer slots `p..p + k`).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn test_pixel(
+    st: &Setup,
+    verts: &[[f64; 4]],
+    sc: &mut Scratch,
+    k: usize,
+    li: u32,
+    tr: &[f64; 3],
+    dr: f64,
+    dza: f64,
+    col: f64,
+    rf: f64,
+    p: usize,
+) -> bool {
+    let bnd = &st.bnd;
+    let e = st.eval(col, tr);
+    // Outside the band |e_i| <= bnd_i the f64 sign is the exact sign.
+    let certain_in = (e[0] > bnd[0]) & (e[1] > bnd[1]) & (e[2] > bnd[2]);
+    if !certain_in {
+        if (e[0] < -bnd[0]) | (e[1] < -bnd[1]) | (e[2] < -bnd[2]) {
+            return false;
+        }
+        if !st.covered_exact(verts, &e, col, rf) {
+            return false;
+        }
+    }
+    let d = dza * col + dr;
+    // Near and far planes; empty K-buffer slots hold +inf. sum e > 0 holds exactly for
+    // covered pixels; its f64 value fails only for slivers at the precision limit, whose
+    // barycentrics could not be normalised.
+    if !(d >= -1.0 && d <= 1.0 && d < sc.depth[p + k - 1] && e[0] + e[1] + e[2] > 0.0) {
+        return false;
+    }
+    // Insertion keeping earlier (lower-index) faces first among equal depths.
+    let mut i = p + k - 1;
+    while i > p && sc.depth[i - 1] > d {
+        sc.depth[i] = sc.depth[i - 1];
+        sc.idx[i] = sc.idx[i - 1];
+        i -= 1;
+    }
+    sc.depth[i] = d;
+    sc.idx[i] = li;
+    true
+}
+
+/// Packs the tile's K-buffer: the fragments in tile-local pixel order (setup index and depth),
+/// counts per pixel and per row, and the setups they use. Their output values are computed
+/// during assembly, straight into the final arrays.
+fn pack_tile<T: Real>(rect: &Rect, sc: &mut Scratch, k: usize) -> TileOut<T> {
+    let n = (rect.c1 - rect.c0) as usize + 1;
+    let rows = (rect.r1 - rect.r0) as usize + 1;
+    let mut total = 0;
+    for lr in 0..rows {
+        let p = lr * TILE_SIZE;
+        total += sc.depth[p * k..(p + n) * k].iter().filter(|d| **d <= 1.0).count();
+    }
+    if total == 0 {
+        return TileOut::empty();
+    }
+    let mut out = TileOut {
+        setups: Vec::new(),
+        fsetup: Vec::with_capacity(total),
+        depth: Vec::with_capacity(total),
+        counts: vec![0u16; TILE_SIZE * TILE_SIZE],
+        row_start: vec![0u32; TILE_SIZE + 1],
+    };
+    sc.remap.clear();
+    sc.remap.resize(sc.setups.len(), u32::MAX);
+    for lr in 0..rows {
+        let p = lr * TILE_SIZE;
+        let slots = p * k..(p + n) * k;
+        for ((cnt, dk), ik) in out.counts[p..p + n]
+            .iter_mut()
+            .zip(sc.depth[slots.clone()].chunks_exact(k))
+            .zip(sc.idx[slots].chunks_exact(k))
+        {
+            for (&d, &idx) in dk.iter().zip(ik) {
+                if d > 1.0 {
+                    break;
+                }
+                let m = &mut sc.remap[idx as usize];
+                if *m == u32::MAX {
+                    *m = out.setups.len() as u32;
+                    out.setups.push(sc.setups[idx as usize]);
+                }
+                out.fsetup.push(*m);
+                out.depth.push(T::from_f64c(d));
+                *cnt += 1;
+            }
+        }
+        out.row_start[lr + 1] = out.fsetup.len() as u32;
+    }
+    for lr in rows..TILE_SIZE {
+        out.row_start[lr + 1] = out.fsetup.len() as u32;
+    }
+    out
+}
+
+/// Vector-Jacobian product of [`rasterize`] with the visibility (which face each fragment
+/// belongs to) held fixed: the interior gradient of the hard rasterizer.
+///
+/// `grad_bary[i]` is `dL/dbary` of fragment `i` (its three components are independent outputs);
+/// `grad_depth` and `grad_view_depth` optionally give `dL/ddepth` (NDC) and `dL/dview_depth`.
+/// Returns `dL/dclip` for every vertex, `[x, y, z, w]`. Barycentrics and depths are recomputed
+/// in `f64` from `clip` at each fragment's pixel centre, following `s.perspective_correct`:
+/// with `M` the `(x, y, w)` columns of the face and `p` the pixel in NDC, `u = M^-1 p`,
+/// `b = u / sum(u)`, `view_depth = 1 / sum(u)`, screen-space barycentrics `u_i w_i`, and
+/// `dL/dM = -M^-T (dL/du) u^T`.
+///
+/// Contributions are computed in parallel and summed into the output in fragment order, so the
+/// result is bit-identical for any number of threads.
+///
+/// # Errors
+/// As [`rasterize`], plus gradient arrays whose lengths differ from `frags.len()` and fragments
+/// that do not match the settings or faces.
+pub fn rasterize_backward<T: Real>(
+    clip: &[[T; 4]],
+    faces: &[[u32; 3]],
+    frags: &Fragments<T>,
+    grad_bary: &[[T; 3]],
+    grad_depth: Option<&[T]>,
+    grad_view_depth: Option<&[T]>,
+    s: &RasterSettings,
+) -> Result<Vec<[T; 4]>, RasterError> {
+    validate_inputs(clip, faces, s)?;
+    if frags.width != s.width || frags.height != s.height {
+        return Err(RasterError::FragmentsMismatch(format!(
+            "fragments are {}x{}, settings say {}x{}",
+            frags.width, frags.height, s.width, s.height
+        )));
+    }
+    frags.validate()?;
+    let n = frags.len();
+    if let Some(i) = frags.face.iter().position(|&f| f as usize >= faces.len()) {
+        return Err(RasterError::FragmentsMismatch(format!(
+            "fragment {i} has face {} but there are {} faces",
+            frags.face[i],
+            faces.len()
+        )));
+    }
+    let check = |what, got: usize| {
+        if got == n {
+            Ok(())
+        } else {
+            Err(RasterError::LengthMismatch {
+                what,
+                got,
+                expected: n,
+            })
+        }
+    };
+    check("grad_bary", grad_bary.len())?;
+    if let Some(g) = grad_depth {
+        check("grad_depth", g.len())?;
+    }
+    if let Some(g) = grad_view_depth {
+        check("grad_view_depth", g.len())?;
+    }
+
+    const BLOCK: usize = 1 << 15;
+    const CHUNK: usize = 512;
+    let mut acc = vec![[0.0f64; 4]; clip.len()];
+    let mut contrib = vec![[[0.0f64; 4]; 3]; BLOCK.min(n)];
+    let (wf, hf) = (s.width as f64, s.height as f64);
+    let mut start = 0;
+    while start < n {
+        let end = (start + BLOCK).min(n);
+        let buf = &mut contrib[..end - start];
+        buf.par_chunks_mut(CHUNK).enumerate().for_each(|(ci, ch)| {
+            let i0 = start + ci * CHUNK;
+            let mut p = frags.pixel_of(i0);
+            for (j, out) in ch.iter_mut().enumerate() {
+                let i = i0 + j;
+                while frags.offsets[p + 1] as usize <= i {
+                    p += 1;
+                }
+                let (row, col) = (p / s.width, p % s.width);
+                let px = [
+                    2.0 * (col as f64 + 0.5) / wf - 1.0,
+                    1.0 - 2.0 * (row as f64 + 0.5) / hf,
+                ];
+                let f = faces[frags.face[i] as usize];
+                let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
+                let gd = grad_depth.map_or(0.0, |g| g[i].to_f64c());
+                let gw = grad_view_depth.map_or(0.0, |g| g[i].to_f64c());
+                let gb = grad_bary[i].map(|x| x.to_f64c());
+                *out = fragment_vjp(&v, px, gb, gd, gw, s.perspective_correct);
+            }
+        });
+        // Fixed-order reduction.
+        for (j, g) in buf.iter().enumerate() {
+            let f = faces[frags.face[start + j] as usize];
+            for m in 0..3 {
+                let a = &mut acc[f[m] as usize];
+                for q in 0..4 {
+                    a[q] += g[m][q];
+                }
+            }
+        }
+        start = end;
+    }
+    Ok(acc.into_iter().map(|a| a.map(T::from_f64c)).collect())
+}
+
+#[inline]
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+#[inline]
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// `dL/d(clip of the face's three vertices)` of one fragment at NDC pixel `px`.
+///
+/// With `M = [v0 v1 v2]` over `(x, y, w)`, `u = M^-1 p`, `W = 1 / sum u` (view depth),
+/// `b = W u`, `Z = b . z`, `D = Z / W` (NDC depth). For `L(b, W, D)`:
+/// `dL/dM = b_m M^-T k` per column with `k = (g_b . b + g_W W) 1 - g_b` (after folding the depth
+/// gradient into `g_b += g_D z / W`, `g_W -= g_D D / W`), and `dL/dz_m = g_D b_m / W`. For
+/// screen-space barycentrics `l_i = u_i w_i`: `dL/dv_m -= u_m M^-T (g_l * w)`, `dL/dw_m += g_l,m u_m`.
+fn fragment_vjp(
+    v: &[[f64; 4]; 3],
+    px: [f64; 2],
+    gb: [f64; 3],
+    gd: f64,
+    gw: f64,
+    persp: bool,
+) -> [[f64; 4]; 3] {
+    let col = |i: usize| [v[i][0], v[i][1], v[i][3]];
+    let c = [
+        cross(col(1), col(2)),
+        cross(col(2), col(0)),
+        cross(col(0), col(1)),
+    ];
+    let det = dot(col(0), c[0]);
+    let mut out = [[0.0; 4]; 3];
+    if det == 0.0 || !det.is_finite() {
+        return out;
+    }
+    let p = [px[0], px[1], 1.0];
+    let u = [dot(c[0], p) / det, dot(c[1], p) / det, dot(c[2], p) / det];
+    let w_frag = 1.0 / (u[0] + u[1] + u[2]);
+    let b = u.map(|x| x * w_frag);
+    let z = [v[0][2], v[1][2], v[2][2]];
+    let w = [v[0][3], v[1][3], v[2][3]];
+    let d = dot(b, z) / w_frag;
+    let mut g = if persp { gb } else { [0.0; 3] };
+    for i in 0..3 {
+        g[i] += gd * z[i] / w_frag;
+    }
+    let g_w = gw - gd * d / w_frag;
+    let s = dot(g, b) + g_w * w_frag;
+    let kk = [s - g[0], s - g[1], s - g[2]];
+    let mut q = [0.0; 3];
+    for i in 0..3 {
+        for a in 0..3 {
+            q[a] += kk[i] * c[i][a];
+        }
+    }
+    let q = q.map(|x| x / det);
+    for m in 0..3 {
+        out[m][0] = b[m] * q[0];
+        out[m][1] = b[m] * q[1];
+        out[m][3] = b[m] * q[2];
+        out[m][2] = gd * b[m] / w_frag;
+    }
+    if !persp {
+        let gl = [gb[0] * w[0], gb[1] * w[1], gb[2] * w[2]];
+        let mut ql = [0.0; 3];
+        for i in 0..3 {
+            for a in 0..3 {
+                ql[a] += gl[i] * c[i][a];
+            }
+        }
+        let ql = ql.map(|x| x / det);
+        for m in 0..3 {
+            out[m][0] -= u[m] * ql[0];
+            out[m][1] -= u[m] * ql[1];
+            out[m][3] -= u[m] * ql[2] - gb[m] * u[m];
+        }
+    }
+    out
+}

@@ -1,0 +1,123 @@
+//! The rasterizer as a tape op: clip-space positions [V, 4] in, per-fragment barycentrics
+//! [N, 3], NDC depth [N] and view depth [N] out, with the packed fragment layout (which face
+//! covers which pixel) kept beside them for the later stages. Backward gives the interior
+//! gradients of the `hard` method (fragments keep their faces; barycentrics and depths move).
+
+use std::sync::Arc;
+
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use ndarray::{ArrayD, IxDyn};
+
+use crate::error::RenderError;
+use crate::raster::{rasterize_backward, Fragments, RasterSettings};
+
+/// Fragments of one rasterization as tape variables plus their fixed layout.
+pub struct Rasterized<'t, T: Real> {
+    /// Which face covers which pixel, packed (see [`Fragments`]).
+    pub fragments: Arc<Fragments<T>>,
+    /// Triangles that were rasterized.
+    pub faces: Arc<Vec<[u32; 3]>>,
+    /// Barycentrics per fragment [N, 3] (perspective-correct unless the settings say not).
+    pub bary: Var<'t, T>,
+    /// NDC depth per fragment [N].
+    pub depth: Var<'t, T>,
+    /// View-space depth per fragment [N].
+    pub view_depth: Var<'t, T>,
+}
+
+/// Copies a [V, 4] tensor into per-vertex arrays.
+pub fn clip_rows<T: Real>(clip: &Tensor<T>) -> Result<Vec<[T; 4]>, RenderError> {
+    if clip.ndim() != 2 || clip.shape()[1] != 4 {
+        return Err(AutodiffError::shape("rasterize", &[clip.shape()], "clip positions must be [V, 4]").into());
+    }
+    Ok(clip
+        .outer_iter()
+        .map(|r| [r[0], r[1], r[2], r[3]])
+        .collect())
+}
+
+struct RasterizeOp<T: Real> {
+    fragments: Arc<Fragments<T>>,
+    faces: Arc<Vec<[u32; 3]>>,
+    settings: RasterSettings,
+}
+
+impl<T: Real> Op<T> for RasterizeOp<T> {
+    fn name(&self) -> &'static str {
+        "rasterize"
+    }
+    fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+        let f = &self.fragments;
+        let n = f.face.len();
+        let bary = ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.iter().flatten().copied().collect())
+            .expect("n x 3");
+        let depth = ArrayD::from_shape_vec(IxDyn(&[n]), f.depth.clone()).expect("n");
+        let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), f.view_depth.clone()).expect("n");
+        Ok(vec![bary, depth, vdepth])
+    }
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        if !ctx.needs_grad[0] {
+            return Ok(vec![None]);
+        }
+        let clip = clip_rows(ctx.inputs[0]).map_err(|e| AutodiffError::Op {
+            op: "rasterize",
+            detail: e.to_string(),
+        })?;
+        let gb = ctx.grad_outputs[0].as_standard_layout();
+        let gbary: &[[T; 3]] = as_rows(gb.as_slice().expect("standard"));
+        let gd = ctx.grad_outputs[1].as_standard_layout();
+        let gv = ctx.grad_outputs[2].as_standard_layout();
+        let gd = gd.as_slice().expect("standard");
+        let gv = gv.as_slice().expect("standard");
+        let any = |s: &[T]| s.iter().any(|v| *v != T::zero());
+        let g = rasterize_backward(
+            &clip,
+            &self.faces,
+            &self.fragments,
+            gbary,
+            any(gd).then_some(gd),
+            any(gv).then_some(gv),
+            &self.settings,
+        )
+        .map_err(|e| AutodiffError::Op {
+            op: "rasterize",
+            detail: e.to_string(),
+        })?;
+        let v = g.len();
+        Ok(vec![Some(
+            ArrayD::from_shape_vec(IxDyn(&[v, 4]), g.into_iter().flatten().collect()).expect("v x 4"),
+        )])
+    }
+}
+
+/// Views a flat slice of length 3N as N triples.
+pub fn as_rows<T>(s: &[T]) -> &[[T; 3]] {
+    assert_eq!(s.len() % 3, 0);
+    // SAFETY: [T; 3] has the layout of three consecutive T, and the length is a multiple of 3.
+    unsafe { std::slice::from_raw_parts(s.as_ptr() as *const [T; 3], s.len() / 3) }
+}
+
+/// Rasterizes clip-space positions [V, 4] with the given faces (hard z-buffer, up to K
+/// fragments per pixel), recording the op on the tape.
+pub fn rasterize<'t, T: Real>(
+    clip: Var<'t, T>,
+    faces: Arc<Vec<[u32; 3]>>,
+    settings: &RasterSettings,
+) -> Result<Rasterized<'t, T>, RenderError> {
+    let cv = clip.value()?;
+    let rows = clip_rows(&cv)?;
+    let fragments = Arc::new(crate::raster::rasterize(&rows, &faces, settings)?);
+    let op = RasterizeOp {
+        fragments: fragments.clone(),
+        faces: faces.clone(),
+        settings: settings.clone(),
+    };
+    let outs = clip.tape().apply_multi(op, &[clip], 3);
+    Ok(Rasterized {
+        fragments,
+        faces,
+        bary: outs[0],
+        depth: outs[1],
+        view_depth: outs[2],
+    })
+}

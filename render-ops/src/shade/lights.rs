@@ -1,0 +1,233 @@
+//! Lights and materials as small tape variables, so that their parameters (directions,
+//! colours, positions, SH coefficients, reflectances, shininess) can be optimised.
+//!
+//! Conventions (CONVENTIONS.md): colours are linear RGB; a directional light's `direction` is
+//! the direction the light *travels* (the surface is lit from `-direction`); a point light
+//! shines equally in all directions without distance attenuation (as PyTorch3D's
+//! `PointLights`); ambient lights add up; an SH light holds 9 rows of RGB coefficients.
+
+use autodiff::{tensor, Real, Tape, Tensor, Var};
+use ndarray::{ArrayD, IxDyn};
+
+use crate::scene;
+
+fn vec3<T: Real>(x: [f64; 3]) -> Tensor<T> {
+    tensor::from_vec(&[3], x.iter().map(|&v| T::from_f64c(v)).collect()).expect("3 values")
+}
+
+/// Uniform ambient light.
+#[derive(Clone, Copy, Debug)]
+pub struct AmbientLight<'t, T: Real> {
+    /// Linear RGB intensity `[3]`.
+    pub color: Var<'t, T>,
+}
+
+/// Light from infinitely far away.
+#[derive(Clone, Copy, Debug)]
+pub struct DirectionalLight<'t, T: Real> {
+    /// Direction the light travels `[3]` (need not be unit length).
+    pub direction: Var<'t, T>,
+    /// Linear RGB intensity `[3]`.
+    pub color: Var<'t, T>,
+}
+
+/// Point light (no distance attenuation).
+#[derive(Clone, Copy, Debug)]
+pub struct PointLight<'t, T: Real> {
+    /// World position `[3]`.
+    pub position: Var<'t, T>,
+    /// Linear RGB intensity `[3]`.
+    pub color: Var<'t, T>,
+}
+
+/// Order-2 spherical-harmonics environment light: `[9, 3]` coefficients in the order and basis
+/// of CONVENTIONS.md (see [`super::sh`]).
+#[derive(Clone, Copy, Debug)]
+pub struct ShLight<'t, T: Real> {
+    /// Coefficients `[9, 3]`.
+    pub coeffs: Var<'t, T>,
+}
+
+impl<'t, T: Real> AmbientLight<'t, T> {
+    /// A constant (non-optimised) ambient light.
+    pub fn constant(tape: &'t Tape<T>, color: [f64; 3]) -> Self {
+        AmbientLight {
+            color: tape.constant(vec3(color)),
+        }
+    }
+}
+
+impl<'t, T: Real> DirectionalLight<'t, T> {
+    /// A constant directional light.
+    pub fn constant(tape: &'t Tape<T>, direction: [f64; 3], color: [f64; 3]) -> Self {
+        DirectionalLight {
+            direction: tape.constant(vec3(direction)),
+            color: tape.constant(vec3(color)),
+        }
+    }
+}
+
+impl<'t, T: Real> PointLight<'t, T> {
+    /// A constant point light.
+    pub fn constant(tape: &'t Tape<T>, position: [f64; 3], color: [f64; 3]) -> Self {
+        PointLight {
+            position: tape.constant(vec3(position)),
+            color: tape.constant(vec3(color)),
+        }
+    }
+}
+
+impl<'t, T: Real> ShLight<'t, T> {
+    /// A constant SH light from 9 rows of RGB.
+    pub fn constant(tape: &'t Tape<T>, coeffs: &[[f64; 3]; 9]) -> Self {
+        let data = coeffs.iter().flatten().map(|&v| T::from_f64c(v)).collect();
+        ShLight {
+            coeffs: tape.constant(tensor::from_vec(&[9, 3], data).expect("27 values")),
+        }
+    }
+}
+
+/// The lights of a scene, by kind.
+#[derive(Clone, Debug, Default)]
+pub struct Lights<'t, T: Real> {
+    /// Ambient lights (their colours add up).
+    pub ambient: Vec<AmbientLight<'t, T>>,
+    /// Directional lights.
+    pub directional: Vec<DirectionalLight<'t, T>>,
+    /// Point lights.
+    pub point: Vec<PointLight<'t, T>>,
+    /// At most one SH light (used by [`Reflectance::Sh`] / [`super::sh_shade`]).
+    pub sh: Option<ShLight<'t, T>>,
+}
+
+impl<'t, T: Real> Lights<'t, T> {
+    /// No lights.
+    pub fn new() -> Self {
+        Lights {
+            ambient: Vec::new(),
+            directional: Vec::new(),
+            point: Vec::new(),
+            sh: None,
+        }
+    }
+
+    /// Adds an ambient light.
+    pub fn with_ambient(mut self, l: AmbientLight<'t, T>) -> Self {
+        self.ambient.push(l);
+        self
+    }
+
+    /// Adds a directional light.
+    pub fn with_directional(mut self, l: DirectionalLight<'t, T>) -> Self {
+        self.directional.push(l);
+        self
+    }
+
+    /// Adds a point light.
+    pub fn with_point(mut self, l: PointLight<'t, T>) -> Self {
+        self.point.push(l);
+        self
+    }
+
+    /// Sets the SH light.
+    pub fn with_sh(mut self, l: ShLight<'t, T>) -> Self {
+        self.sh = Some(l);
+        self
+    }
+
+    /// Constant lights from a scene description (`lights` of the scene JSON).
+    pub fn from_scene(tape: &'t Tape<T>, lights: &[scene::Light]) -> Self {
+        let mut out = Lights::new();
+        for l in lights {
+            match l {
+                scene::Light::Ambient { color } => out.ambient.push(AmbientLight::constant(tape, *color)),
+                scene::Light::Directional { direction, color } => {
+                    out.directional.push(DirectionalLight::constant(tape, *direction, *color))
+                }
+                scene::Light::Point { position, color } => out.point.push(PointLight::constant(tape, *position, *color)),
+                scene::Light::Sh { coeffs } => {
+                    let mut c = [[0.0; 3]; 9];
+                    for (dst, src) in c.iter_mut().zip(coeffs) {
+                        *dst = *src;
+                    }
+                    out.sh = Some(ShLight::constant(tape, &c));
+                }
+            }
+        }
+        out
+    }
+
+    /// Stacks `f` of every light of a kind into `[L, 3]` (a `[0, 3]` constant when there are
+    /// none).
+    pub(crate) fn stacked<L>(tape: &'t Tape<T>, lights: &[L], f: impl Fn(&L) -> Var<'t, T>) -> Var<'t, T> {
+        if lights.is_empty() {
+            return tape.constant(ArrayD::zeros(IxDyn(&[0, 3])));
+        }
+        let vars: Vec<Var<'t, T>> = lights.iter().map(|l| f(l).reshape(&[3])).collect();
+        tape.stack(&vars, 0)
+    }
+}
+
+/// Which reflection model [`super::shade`] evaluates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Reflectance {
+    /// Diffuse only (Lambert's cosine law).
+    Lambert,
+    /// Diffuse plus Phong (1975) specular, `(r . v)^s`.
+    Phong,
+    /// Diffuse plus Blinn (1977) specular, `(n . h)^s`.
+    BlinnPhong,
+}
+
+/// Reflectances of a surface; the diffuse reflectance (albedo) is per fragment and given to
+/// [`super::shade`] with the surface.
+#[derive(Clone, Copy, Debug)]
+pub struct Material<'t, T: Real> {
+    /// Reflection model.
+    pub model: Reflectance,
+    /// Ambient reflectance `[3]` or `[N, 3]`; `None` means "the diffuse albedo" (the scene
+    /// default).
+    pub ka: Option<Var<'t, T>>,
+    /// Specular reflectance `[3]` or `[N, 3]` (ignored by Lambert).
+    pub ks: Var<'t, T>,
+    /// Specular exponent, one element (ignored by Lambert). Values up to 1e4 are fine.
+    pub shininess: Var<'t, T>,
+}
+
+impl<'t, T: Real> Material<'t, T> {
+    /// A constant material: `ka = None` (albedo), the given `ks` and shininess.
+    pub fn constant(tape: &'t Tape<T>, model: Reflectance, ks: [f64; 3], shininess: f64) -> Self {
+        Material {
+            model,
+            ka: None,
+            ks: tape.constant(vec3(ks)),
+            shininess: tape.constant(tensor::scalar(T::from_f64c(shininess))),
+        }
+    }
+
+    /// Lambert with the ambient reflectance equal to the albedo.
+    pub fn lambert(tape: &'t Tape<T>) -> Self {
+        Self::constant(tape, Reflectance::Lambert, [0.0; 3], 1.0)
+    }
+
+    /// Sets a separate ambient reflectance.
+    pub fn with_ka(mut self, ka: Var<'t, T>) -> Self {
+        self.ka = Some(ka);
+        self
+    }
+
+    /// The constant material of a scene description; `None` for `shading` `none` and `sh`,
+    /// which are not reflection models (use the albedo directly, or [`super::sh_shade`]).
+    /// The scene's `kd` is not part of it: multiply it into the albedo.
+    pub fn from_scene(tape: &'t Tape<T>, m: &scene::Material) -> Option<Self> {
+        let model = match m.shading {
+            scene::Shading::Lambert => Reflectance::Lambert,
+            scene::Shading::Phong => Reflectance::Phong,
+            scene::Shading::BlinnPhong => Reflectance::BlinnPhong,
+            scene::Shading::None | scene::Shading::Sh => return None,
+        };
+        let mut out = Self::constant(tape, model, m.ks, m.shininess);
+        out.ka = m.ka.map(|ka| tape.constant(vec3(ka)));
+        Some(out)
+    }
+}

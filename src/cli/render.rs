@@ -1,0 +1,26 @@
+//! `tapestry render`.
+
+use std::path::Path;
+use std::process::ExitCode;
+
+use autodiff::Tape;
+use ndarray::{s, Ix3};
+use render_ops::io::{write_npy, write_png};
+use render_ops::pipeline::Wrt;
+use render_ops::scene::Scene;
+
+use super::CliError;
+
+/// Renders `scene` (f64 precision, no gradients) and writes the PNG and optional .npy.
+pub fn run(scene: &Path, out: &Path, npy: Option<&Path>) -> Result<ExitCode, CliError> {
+    let scene = Scene::<f64>::load(scene)?;
+    let tape = Tape::new();
+    let vars = scene.vars(&tape, Wrt::default());
+    let img = scene.render(&vars)?.value()?;
+    let img = img.view().into_dimensionality::<Ix3>().map_err(|e| CliError::Message(e.to_string()))?;
+    write_png(out, &img.slice(s![.., .., 0..3]))?;
+    if let Some(npy) = npy {
+        write_npy(npy, &img)?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
