@@ -12,7 +12,9 @@ impl<T: Real> Op<T> for Softplus {
         "softplus"
     }
     fn forward(&mut self, x: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        Ok(vec![x[0].mapv(|v| v.max(T::zero()) + (-v.abs()).exp().ln_1p())])
+        Ok(vec![
+            x[0].mapv(|v| v.max(T::zero()) + (-v.abs()).exp().ln_1p())
+        ])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let g = ctx.grad_outputs[0] * &ctx.inputs[0].mapv(|v| T::one() / (T::one() + (-v).exp()));

@@ -135,7 +135,11 @@ fn bench_chain50(c: &mut Criterion) {
             for _ in 0..116 {
                 let (s, d) = (at % 64, (at + 1) % 64);
                 let (lo, hi) = ring.split_at_mut(d.max(s));
-                let (src, dst) = if s < d { (&lo[s], &mut hi[0]) } else { (&hi[0], &mut lo[d]) };
+                let (src, dst) = if s < d {
+                    (&lo[s], &mut hi[0])
+                } else {
+                    (&hi[0], &mut lo[d])
+                };
                 par_copy(dst, src);
                 at += 1;
             }

@@ -98,11 +98,17 @@ impl GradcheckReport {
     }
     /// Largest absolute error over inputs.
     pub fn max_abs_err(&self) -> f64 {
-        self.inputs.iter().map(|r| r.max_abs_err).fold(0.0, f64::max)
+        self.inputs
+            .iter()
+            .map(|r| r.max_abs_err)
+            .fold(0.0, f64::max)
     }
     /// Largest relative error over inputs.
     pub fn max_rel_err(&self) -> f64 {
-        self.inputs.iter().map(|r| r.max_rel_err).fold(0.0, f64::max)
+        self.inputs
+            .iter()
+            .map(|r| r.max_rel_err)
+            .fold(0.0, f64::max)
     }
 }
 
@@ -142,7 +148,12 @@ where
     Ok(v.as_standard_layout().into_owned())
 }
 
-fn analytic_vjp<F>(f: &F, xs: &[Tensor<f64>], wrt: &[bool], v: Tensor<f64>) -> Result<Vec<Tensor<f64>>>
+fn analytic_vjp<F>(
+    f: &F,
+    xs: &[Tensor<f64>],
+    wrt: &[bool],
+    v: Tensor<f64>,
+) -> Result<Vec<Tensor<f64>>>
 where
     F: for<'t> Fn(&'t Tape<f64>, &[Var<'t, f64>]) -> Var<'t, f64>,
 {
@@ -163,20 +174,30 @@ fn tol_ok(a: f64, n: f64, o: &GradcheckOptions) -> bool {
 }
 
 /// Checks the gradients of `f` at `inputs` against central finite differences.
-pub fn gradcheck<F>(f: F, inputs: &[Tensor<f64>], opts: &GradcheckOptions) -> Result<GradcheckReport>
+pub fn gradcheck<F>(
+    f: F,
+    inputs: &[Tensor<f64>],
+    opts: &GradcheckOptions,
+) -> Result<GradcheckReport>
 where
     F: for<'t> Fn(&'t Tape<f64>, &[Var<'t, f64>]) -> Var<'t, f64>,
 {
-    if !(opts.eps > 0.0) {
+    if opts.eps.is_nan() || opts.eps <= 0.0 {
         return Err(AutodiffError::invalid("gradcheck", "eps must be > 0"));
     }
     let wrt = opts.wrt.clone().unwrap_or_else(|| vec![true; inputs.len()]);
     if wrt.len() != inputs.len() {
-        return Err(AutodiffError::invalid("gradcheck", "wrt must have one flag per input"));
+        return Err(AutodiffError::invalid(
+            "gradcheck",
+            "wrt must have one flag per input",
+        ));
     }
     let y0 = eval(&f, inputs, &wrt)?;
     let m = y0.len();
-    let mut xs: Vec<Tensor<f64>> = inputs.iter().map(|x| x.as_standard_layout().into_owned()).collect();
+    let mut xs: Vec<Tensor<f64>> = inputs
+        .iter()
+        .map(|x| x.as_standard_layout().into_owned())
+        .collect();
     let mut reports = Vec::new();
     match opts.mode {
         Mode::Full => {
@@ -209,18 +230,25 @@ where
                     let ym = eval(&f, &xs, &wrt)?;
                     xs[i].as_slice_mut().expect("standard")[j] = x0;
                     for (k, row) in rows.iter().enumerate() {
-                        let n = (yp.as_slice().expect("std")[k] - ym.as_slice().expect("std")[k]) / (2.0 * opts.eps);
+                        let n = (yp.as_slice().expect("std")[k] - ym.as_slice().expect("std")[k])
+                            / (2.0 * opts.eps);
                         let a = row[i].as_standard_layout()[IxDyn(&unravel(j, xs[i].shape()))];
                         let abs = (a - n).abs();
                         let rel = abs / n.abs().max(opts.atol);
                         let bad = !tol_ok(a, n, opts);
                         if abs > rep.max_abs_err || abs.is_nan() || (bad && rep.passed) {
-                            rep.max_abs_err = if abs.is_nan() { f64::INFINITY } else { abs.max(rep.max_abs_err) };
+                            rep.max_abs_err = if abs.is_nan() {
+                                f64::INFINITY
+                            } else {
+                                abs.max(rep.max_abs_err)
+                            };
                             rep.worst_index = vec![k, j];
                             rep.analytic = a;
                             rep.numeric = n;
                         }
-                        rep.max_rel_err = rep.max_rel_err.max(if rel.is_nan() { f64::INFINITY } else { rel });
+                        rep.max_rel_err =
+                            rep.max_rel_err
+                                .max(if rel.is_nan() { f64::INFINITY } else { rel });
                         rep.passed &= !bad;
                     }
                 }
@@ -309,7 +337,12 @@ fn normwise<T: Real>(a: &Tensor<T>, b: &Tensor<f64>) -> f64 {
 
 /// Runs `f32f` and `f64f` (the same function instantiated at both precisions) on `inputs` and
 /// reports the normwise relative difference of their values and gradients.
-pub fn compare_precision<F32, F64>(f32f: F32, f64f: F64, inputs: &[Tensor<f64>], seed: u64) -> Result<PrecisionReport>
+pub fn compare_precision<F32, F64>(
+    f32f: F32,
+    f64f: F64,
+    inputs: &[Tensor<f64>],
+    seed: u64,
+) -> Result<PrecisionReport>
 where
     F32: for<'t> Fn(&'t Tape<f32>, &[Var<'t, f32>]) -> Var<'t, f32>,
     F64: for<'t> Fn(&'t Tape<f64>, &[Var<'t, f64>]) -> Var<'t, f64>,
@@ -322,7 +355,10 @@ where
     let g64 = t64.vjp(y64, w.clone())?;
 
     let t32 = Tape::<f32>::new();
-    let v32: Vec<_> = inputs.iter().map(|x| t32.leaf(cast::<f64, f32>(x))).collect();
+    let v32: Vec<_> = inputs
+        .iter()
+        .map(|x| t32.leaf(cast::<f64, f32>(x)))
+        .collect();
     let y32 = f32f(&t32, &v32);
     let y32v = (*y32.value()?).clone();
     if y32v.shape() != y64v.shape() {

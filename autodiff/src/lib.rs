@@ -22,6 +22,7 @@ pub mod suite;
 pub mod tape;
 pub mod tensor;
 mod var_ops;
+mod vmath;
 
 pub use error::{AutodiffError, Pass, Result};
 pub use ndarray;

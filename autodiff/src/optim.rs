@@ -8,10 +8,18 @@ use crate::Real;
 
 /// Checks every `(parameter, gradient)` pair against each other and against the state kept
 /// from earlier steps, before anything is updated: a failed step changes nothing.
-fn check_all<T: Real>(name: &'static str, pairs: &[(&mut Tensor<T>, &Tensor<T>)], states: &[&Vec<Tensor<T>>]) -> Result<()> {
+fn check_all<T: Real>(
+    name: &'static str,
+    pairs: &[(&mut Tensor<T>, &Tensor<T>)],
+    states: &[&Vec<Tensor<T>>],
+) -> Result<()> {
     for (k, (p, g)) in pairs.iter().enumerate() {
         if p.shape() != g.shape() {
-            return Err(AutodiffError::shape(name, &[p.shape(), g.shape()], format!("gradient {k} does not match its parameter")));
+            return Err(AutodiffError::shape(
+                name,
+                &[p.shape(), g.shape()],
+                format!("gradient {k} does not match its parameter"),
+            ));
         }
         for state in states {
             if let Some(s) = state.get(k) {
@@ -29,7 +37,11 @@ fn check_all<T: Real>(name: &'static str, pairs: &[(&mut Tensor<T>, &Tensor<T>)]
 }
 
 /// State of parameter `k`, created as zeros on its first step.
-fn state_for<'a, T: Real>(state: &'a mut Vec<Tensor<T>>, k: usize, p: &Tensor<T>) -> &'a mut Tensor<T> {
+fn state_for<'a, T: Real>(
+    state: &'a mut Vec<Tensor<T>>,
+    k: usize,
+    p: &Tensor<T>,
+) -> &'a mut Tensor<T> {
     if state.len() == k {
         state.push(Tensor::zeros(p.raw_dim()));
     }
@@ -56,16 +68,22 @@ impl<T: Real> Sgd<T> {
         }
     }
     /// One step over `(parameter, gradient)` pairs. On a shape error nothing is updated.
-    pub fn step<'a>(&mut self, params: impl IntoIterator<Item = (&'a mut Tensor<T>, &'a Tensor<T>)>) -> Result<()> {
+    pub fn step<'a>(
+        &mut self,
+        params: impl IntoIterator<Item = (&'a mut Tensor<T>, &'a Tensor<T>)>,
+    ) -> Result<()> {
         let pairs: Vec<_> = params.into_iter().collect();
         check_all("sgd", &pairs, &[&self.velocity])?;
         for (k, (p, g)) in pairs.into_iter().enumerate() {
             let v = state_for(&mut self.velocity, k, p);
             let (mu, lr) = (self.momentum, self.lr);
-            ndarray::Zip::from(&mut *p).and(v).and(g).for_each(|p, v, &g| {
-                *v = mu * *v + g;
-                *p -= lr * *v;
-            });
+            ndarray::Zip::from(&mut *p)
+                .and(v)
+                .and(g)
+                .for_each(|p, v, &g| {
+                    *v = mu * *v + g;
+                    *p -= lr * *v;
+                });
         }
         Ok(())
     }
@@ -106,7 +124,10 @@ impl<T: Real> Adam<T> {
     }
     /// One step over `(parameter, gradient)` pairs. On a shape error nothing is updated (not
     /// even the step count).
-    pub fn step<'a>(&mut self, params: impl IntoIterator<Item = (&'a mut Tensor<T>, &'a Tensor<T>)>) -> Result<()> {
+    pub fn step<'a>(
+        &mut self,
+        params: impl IntoIterator<Item = (&'a mut Tensor<T>, &'a Tensor<T>)>,
+    ) -> Result<()> {
         let pairs: Vec<_> = params.into_iter().collect();
         check_all("adam", &pairs, &[&self.m, &self.v])?;
         self.t += 1;

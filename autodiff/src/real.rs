@@ -41,11 +41,81 @@ pub trait Real:
     fn from_usize_c(n: usize) -> Self {
         Self::from_f64c(n as f64)
     }
+
+    // Kernel hooks of the elementwise ops (see `crate::vmath`): `f32` swaps in vectorisable
+    // polynomials, valid where the matching `k_*_ok` holds; elsewhere (and for `f64`, which
+    // gradient checks rely on) the exact libm functions are used.
+    #[doc(hidden)]
+    const FAST_MATH: bool = false;
+    #[doc(hidden)]
+    #[inline(always)]
+    fn k_sin(self) -> Self {
+        self.sin()
+    }
+    #[doc(hidden)]
+    #[inline(always)]
+    fn k_cos(self) -> Self {
+        self.cos()
+    }
+    #[doc(hidden)]
+    #[inline(always)]
+    fn k_trig_ok(self) -> bool {
+        true
+    }
+    #[doc(hidden)]
+    #[inline(always)]
+    fn k_exp(self) -> Self {
+        self.exp()
+    }
+    #[doc(hidden)]
+    #[inline(always)]
+    fn k_exp_ok(self) -> bool {
+        true
+    }
+    #[doc(hidden)]
+    #[inline(always)]
+    fn k_tanh(self) -> Self {
+        self.tanh()
+    }
+    #[doc(hidden)]
+    #[inline(always)]
+    fn k_sigmoid(self) -> Self {
+        crate::ops::elementwise::sigmoid(self)
+    }
 }
 
 impl Real for f32 {
     const NAME: &'static str = "f32";
     const EPS: Self = f32::EPSILON;
+    const FAST_MATH: bool = true;
+    #[inline(always)]
+    fn k_sin(self) -> Self {
+        crate::vmath::sin(self)
+    }
+    #[inline(always)]
+    fn k_cos(self) -> Self {
+        crate::vmath::cos(self)
+    }
+    #[inline(always)]
+    fn k_trig_ok(self) -> bool {
+        self.abs() <= crate::vmath::TRIG_MAX
+    }
+    #[inline(always)]
+    fn k_exp(self) -> Self {
+        crate::vmath::exp(self)
+    }
+    #[inline(always)]
+    fn k_exp_ok(self) -> bool {
+        (crate::vmath::EXP_MIN..=crate::vmath::EXP_MAX).contains(&self)
+    }
+    #[inline(always)]
+    fn k_tanh(self) -> Self {
+        crate::vmath::tanh(self)
+    }
+    #[inline(always)]
+    fn k_sigmoid(self) -> Self {
+        crate::vmath::sigmoid(self)
+    }
     #[inline(always)]
     fn from_f64c(x: f64) -> Self {
         x as f32

@@ -238,7 +238,14 @@ pub fn shapes_str(shapes: &[Vec<usize>]) -> String {
 
 /// An aligned text table: op, input shapes, max abs err, max rel err, f32 rel, pass.
 pub fn render_table(results: &[CaseResult]) -> String {
-    let head = ["op", "inputs", "max abs err", "max rel err", "f32 rel", "pass"];
+    let head = [
+        "op",
+        "inputs",
+        "max abs err",
+        "max rel err",
+        "f32 rel",
+        "pass",
+    ];
     let rows: Vec<[String; 6]> = results
         .iter()
         .map(|r| {
@@ -338,27 +345,67 @@ pub fn builtin_cases() -> Vec<Case> {
     vec![
         // ---- elementwise binary, with NumPy broadcasting (size-1 dims and 0-d scalars) ----
         case!("add", [[3, 4], [3, 4]], [U, U], |t, x| x[0] + x[1]),
-        case!("add/bcast-1dims", [[3, 1], [1, 4]], [U, U], |t, x| x[0] + x[1]),
-        case!("add/bcast-rank", [[2, 3, 4], [4]], [U, U], |t, x| x[0] + x[1]),
+        case!("add/bcast-1dims", [[3, 1], [1, 4]], [U, U], |t, x| x[0]
+            + x[1]),
+        case!("add/bcast-rank", [[2, 3, 4], [4]], [U, U], |t, x| x[0]
+            + x[1]),
         case!("add/0d", [[], [2, 3]], [U, U], |t, x| x[0] + x[1]),
         case!("sub", [[3, 4], [3, 4]], [U, U], |t, x| x[0] - x[1]),
         case!("sub/bcast", [[2, 1, 3], [4, 1]], [U, U], |t, x| x[0] - x[1]),
         case!("sub/0d-0d", [[], []], [U, U], |t, x| x[0] - x[1]),
         case!("mul", [[3, 4], [3, 4]], [U, U], |t, x| x[0] * x[1]),
-        case!("mul/bcast-1dims", [[2, 3, 1], [3, 4]], [U, U], |t, x| x[0] * x[1]),
+        case!("mul/bcast-1dims", [[2, 3, 1], [3, 4]], [U, U], |t, x| x[0]
+            * x[1]),
         case!("mul/0d", [[2, 3], []], [U, U], |t, x| x[0] * x[1]),
         case!("div", [[3, 4], [3, 4]], [U, AWAY], |t, x| x[0] / x[1]),
         case!("div/bcast", [[3, 4], [3, 1]], [U, AWAY], |t, x| x[0] / x[1]),
         case!("div/0d", [[], [2, 3]], [U, AWAY], |t, x| x[0] / x[1]),
-        case!("pow", [[3, 4], [3, 4]], [POS, Uniform(-1.5, 1.5)], |t, x| x[0].pow(x[1])),
-        case!("pow/0d-exponent", [[3, 4], []], [POS, Uniform(-1.5, 1.5)], |t, x| x[0].pow(x[1])),
-        case!("pow/bcast-base", [[4], [3, 4]], [POS, Uniform(-1.5, 1.5)], |t, x| x[0].pow(x[1])),
-        case!("minimum", [[3, 4], [3, 4]], [Lattice(0.0), Lattice(0.5)], |t, x| x[0].minimum(x[1])),
-        case!("minimum/bcast", [[3, 4], [4]], [Lattice(0.0), Lattice(0.5)], |t, x| x[0].minimum(x[1])),
-        case!("maximum", [[3, 4], [3, 4]], [Lattice(0.0), Lattice(0.5)], |t, x| x[0].maximum(x[1])),
-        case!("maximum/0d", [[3, 4], []], [Lattice(0.0), Lattice(0.5)], |t, x| x[0].maximum(x[1])),
-        case!("where", [[3, 4], [3, 4]], [U, U], |t, x| x[0].where_(checker(&[3, 4]), x[1])),
-        case!("where/bcast", [[3, 1], [4]], [U, U], |t, x| x[0].where_(checker(&[3, 4]), x[1])),
+        case!(
+            "pow",
+            [[3, 4], [3, 4]],
+            [POS, Uniform(-1.5, 1.5)],
+            |t, x| x[0].pow(x[1])
+        ),
+        case!(
+            "pow/0d-exponent",
+            [[3, 4], []],
+            [POS, Uniform(-1.5, 1.5)],
+            |t, x| x[0].pow(x[1])
+        ),
+        case!(
+            "pow/bcast-base",
+            [[4], [3, 4]],
+            [POS, Uniform(-1.5, 1.5)],
+            |t, x| x[0].pow(x[1])
+        ),
+        case!(
+            "minimum",
+            [[3, 4], [3, 4]],
+            [Lattice(0.0), Lattice(0.5)],
+            |t, x| x[0].minimum(x[1])
+        ),
+        case!(
+            "minimum/bcast",
+            [[3, 4], [4]],
+            [Lattice(0.0), Lattice(0.5)],
+            |t, x| x[0].minimum(x[1])
+        ),
+        case!(
+            "maximum",
+            [[3, 4], [3, 4]],
+            [Lattice(0.0), Lattice(0.5)],
+            |t, x| x[0].maximum(x[1])
+        ),
+        case!(
+            "maximum/0d",
+            [[3, 4], []],
+            [Lattice(0.0), Lattice(0.5)],
+            |t, x| x[0].maximum(x[1])
+        ),
+        case!("where", [[3, 4], [3, 4]], [U, U], |t, x| x[0]
+            .where_(checker(&[3, 4]), x[1])),
+        case!("where/bcast", [[3, 1], [4]], [U, U], |t, x| x[0]
+            .where_(checker(&[3, 4]), x[1])),
         // ---- elementwise unary ----
         case!("neg", [[3, 4]], [U], |t, x| -x[0]),
         case!("exp", [[3, 4]], [U], |t, x| x[0].exp()),
@@ -367,65 +414,127 @@ pub fn builtin_cases() -> Vec<Case> {
         case!("sin", [[3, 4]], [Uniform(-3.0, 3.0)], |t, x| x[0].sin()),
         case!("cos", [[3, 4]], [Uniform(-3.0, 3.0)], |t, x| x[0].cos()),
         case!("tanh", [[3, 4]], [Uniform(-2.0, 2.0)], |t, x| x[0].tanh()),
-        case!("sigmoid", [[3, 4]], [Uniform(-4.0, 4.0)], |t, x| x[0].sigmoid()),
+        case!("sigmoid", [[3, 4]], [Uniform(-4.0, 4.0)], |t, x| x[0]
+            .sigmoid()),
         case!("relu", [[3, 4]], [AWAY], |t, x| x[0].relu()),
         case!("abs", [[3, 4]], [AWAY], |t, x| x[0].abs()),
         case!("square", [[3, 4]], [U], |t, x| x[0].square()),
         case!("recip", [[3, 4]], [AWAY], |t, x| x[0].recip()),
-        case!("clamp", [[3, 4]], [Lattice(0.0)], |t, x| x[0].clamp(c(-0.5), c(0.5))),
+        case!("clamp", [[3, 4]], [Lattice(0.0)], |t, x| x[0]
+            .clamp(c(-0.5), c(0.5))),
         case!("pow_scalar", [[3, 4]], [POS], |t, x| x[0].powf(c(2.5))),
-        case!("pow_scalar/negative", [[3, 4]], [POS], |t, x| x[0].powf(c(-1.5))),
-        case!("scalar_pow", [[3, 4]], [U], |t, x| unary(x[0], Unary::ScalarPow(c(2.5)))),
+        case!("pow_scalar/negative", [[3, 4]], [POS], |t, x| x[0]
+            .powf(c(-1.5))),
+        case!("scalar_pow", [[3, 4]], [U], |t, x| unary(
+            x[0],
+            Unary::ScalarPow(c(2.5))
+        )),
         // ---- scalar operands ----
         case!("add_scalar", [[3, 4]], [U], |t, x| x[0] + c::<T>(0.75)),
         case!("sub_scalar", [[3, 4]], [U], |t, x| x[0] - c::<T>(0.75)),
         case!("mul_scalar", [[3, 4]], [U], |t, x| x[0] * c::<T>(-1.5)),
         case!("div_scalar", [[3, 4]], [U], |t, x| x[0] / c::<T>(4.0)),
-        case!("rsub_scalar", [[3, 4]], [U], |t, x| unary(x[0], Unary::RSubScalar(c(2.0)))),
-        case!("rdiv_scalar", [[3, 4]], [AWAY], |t, x| unary(x[0], Unary::RDivScalar(c(2.0)))),
+        case!("rsub_scalar", [[3, 4]], [U], |t, x| unary(
+            x[0],
+            Unary::RSubScalar(c(2.0))
+        )),
+        case!("rdiv_scalar", [[3, 4]], [AWAY], |t, x| unary(
+            x[0],
+            Unary::RDivScalar(c(2.0))
+        )),
         // ---- reductions ----
         case!("sum", [[3, 4]], [U], |t, x| x[0].sum()),
         case!("sum/0d", [[]], [U], |t, x| x[0].sum()),
-        case!("sum_axes", [[2, 3, 4]], [U], |t, x| x[0].sum_axes(&[0, 2], false)),
-        case!("sum_axes/keepdim", [[2, 3, 4]], [U], |t, x| x[0].sum_axes(&[1], true)),
-        case!("sum_axes/neg-axis", [[2, 3, 4]], [U], |t, x| x[0].sum_axes(&[-1, 0], true)),
+        case!("sum_axes", [[2, 3, 4]], [U], |t, x| x[0]
+            .sum_axes(&[0, 2], false)),
+        case!("sum_axes/keepdim", [[2, 3, 4]], [U], |t, x| x[0]
+            .sum_axes(&[1], true)),
+        case!("sum_axes/neg-axis", [[2, 3, 4]], [U], |t, x| x[0]
+            .sum_axes(&[-1, 0], true)),
         case!("mean", [[3, 4]], [U], |t, x| x[0].mean()),
-        case!("mean_axes/keepdim", [[2, 3, 4]], [U], |t, x| x[0].mean_axes(&[1], true)),
-        case!("max_axis", [[3, 5]], [Distinct(-2.0, 2.0)], |t, x| x[0].max_axis(1, false)),
-        case!("max_axis/keepdim", [[4, 3]], [Distinct(-2.0, 2.0)], |t, x| x[0].max_axis(0, true)),
-        case!("max_axis/3d", [[2, 3, 4]], [Distinct(-2.0, 2.0)], |t, x| x[0].max_axis(-2, false)),
-        case!("logsumexp", [[3, 5]], [Uniform(-2.0, 2.0)], |t, x| x[0].logsumexp(1, false)),
-        case!("logsumexp/keepdim", [[4, 3]], [Uniform(-2.0, 2.0)], |t, x| x[0].logsumexp(0, true)),
+        case!("mean_axes/keepdim", [[2, 3, 4]], [U], |t, x| x[0]
+            .mean_axes(&[1], true)),
+        case!("max_axis", [[3, 5]], [Distinct(-2.0, 2.0)], |t, x| x[0]
+            .max_axis(1, false)),
+        case!(
+            "max_axis/keepdim",
+            [[4, 3]],
+            [Distinct(-2.0, 2.0)],
+            |t, x| x[0].max_axis(0, true)
+        ),
+        case!("max_axis/3d", [[2, 3, 4]], [Distinct(-2.0, 2.0)], |t, x| x
+            [0]
+        .max_axis(-2, false)),
+        case!("logsumexp", [[3, 5]], [Uniform(-2.0, 2.0)], |t, x| x[0]
+            .logsumexp(1, false)),
+        case!(
+            "logsumexp/keepdim",
+            [[4, 3]],
+            [Uniform(-2.0, 2.0)],
+            |t, x| x[0].logsumexp(0, true)
+        ),
         // ---- matrix products ----
-        case!("matmul/mat-mat", [[3, 4], [4, 2]], [U, U], |t, x| x[0].matmul(x[1])),
-        case!("matmul/mat-vec", [[3, 4], [4]], [U, U], |t, x| x[0].matmul(x[1])),
-        case!("matmul/vec-mat", [[4], [4, 3]], [U, U], |t, x| x[0].matmul(x[1])),
-        case!("matmul/vec-vec", [[5], [5]], [U, U], |t, x| x[0].matmul(x[1])),
-        case!("matmul/batched", [[2, 3, 4], [2, 4, 2]], [U, U], |t, x| x[0].matmul(x[1])),
-        case!("matmul/batch-bcast-rhs", [[2, 3, 4], [1, 4, 2]], [U, U], |t, x| x[0].matmul(x[1])),
-        case!("matmul/batch-bcast-lhs", [[1, 3, 4], [3, 4, 2]], [U, U], |t, x| x[0].matmul(x[1])),
-        case!("matmul/3d-2d", [[2, 3, 4], [4, 2]], [U, U], |t, x| x[0].matmul(x[1])),
+        case!("matmul/mat-mat", [[3, 4], [4, 2]], [U, U], |t, x| x[0]
+            .matmul(x[1])),
+        case!("matmul/mat-vec", [[3, 4], [4]], [U, U], |t, x| x[0]
+            .matmul(x[1])),
+        case!("matmul/vec-mat", [[4], [4, 3]], [U, U], |t, x| x[0]
+            .matmul(x[1])),
+        case!("matmul/vec-vec", [[5], [5]], [U, U], |t, x| x[0]
+            .matmul(x[1])),
+        case!("matmul/batched", [[2, 3, 4], [2, 4, 2]], [U, U], |t, x| x
+            [0]
+        .matmul(x[1])),
+        case!(
+            "matmul/batch-bcast-rhs",
+            [[2, 3, 4], [1, 4, 2]],
+            [U, U],
+            |t, x| x[0].matmul(x[1])
+        ),
+        case!(
+            "matmul/batch-bcast-lhs",
+            [[1, 3, 4], [3, 4, 2]],
+            [U, U],
+            |t, x| x[0].matmul(x[1])
+        ),
+        case!("matmul/3d-2d", [[2, 3, 4], [4, 2]], [U, U], |t, x| x[0]
+            .matmul(x[1])),
         // ---- shape ops ----
         case!("reshape", [[3, 4]], [U], |t, x| x[0].reshape(&[2, 6])),
-        case!("reshape/flatten", [[2, 3, 2]], [U], |t, x| (x[0].permute(&[2, 0, 1]) * c::<T>(2.0)).reshape(&[12])),
+        case!("reshape/flatten", [[2, 3, 2]], [U], |t, x| (x[0]
+            .permute(&[2, 0, 1])
+            * c::<T>(2.0))
+        .reshape(&[12])),
         case!("permute", [[2, 3, 4]], [U], |t, x| x[0].permute(&[2, 0, 1])),
         case!("t", [[3, 4]], [U], |t, x| x[0].t()),
         case!("t/3d", [[2, 3, 4]], [U], |t, x| x[0].t()),
         case!("slice", [[4, 5]], [U], |t, x| x[0].slice(1, 1, 4)),
         case!("slice/axis0", [[4, 5]], [U], |t, x| x[0].slice(0, 2, 3)),
-        case!("concat", [[2, 3], [1, 3], [3, 3]], [U, U, U], |t, x| t.concat(x, 0)),
-        case!("concat/last-axis", [[2, 3], [2, 2]], [U, U], |t, x| t.concat(x, -1)),
-        case!("stack", [[2, 3], [2, 3], [2, 3]], [U, U, U], |t, x| t.stack(x, 0)),
-        case!("stack/new-last-axis", [[2, 3], [2, 3]], [U, U], |t, x| t.stack(x, -1)),
-        case!("broadcast_to", [[3, 1]], [U], |t, x| x[0].broadcast_to(&[2, 3, 4])),
-        case!("broadcast_to/0d", [[]], [U], |t, x| x[0].broadcast_to(&[2, 2])),
+        case!("concat", [[2, 3], [1, 3], [3, 3]], [U, U, U], |t, x| t
+            .concat(x, 0)),
+        case!("concat/last-axis", [[2, 3], [2, 2]], [U, U], |t, x| t
+            .concat(x, -1)),
+        case!("stack", [[2, 3], [2, 3], [2, 3]], [U, U, U], |t, x| t
+            .stack(x, 0)),
+        case!("stack/new-last-axis", [[2, 3], [2, 3]], [U, U], |t, x| t
+            .stack(x, -1)),
+        case!("broadcast_to", [[3, 1]], [U], |t, x| x[0]
+            .broadcast_to(&[2, 3, 4])),
+        case!("broadcast_to/0d", [[]], [U], |t, x| x[0]
+            .broadcast_to(&[2, 2])),
         // ---- indexing (repeated indices accumulate) ----
-        case!("index_select", [[5, 3]], [U], |t, x| x[0].index_select(0, &[4, 0, 4, 2, 0])),
-        case!("index_select/axis1", [[3, 4]], [U], |t, x| x[0].index_select(-1, &[3, 3, 1])),
+        case!("index_select", [[5, 3]], [U], |t, x| x[0]
+            .index_select(0, &[4, 0, 4, 2, 0])),
+        case!("index_select/axis1", [[3, 4]], [U], |t, x| x[0]
+            .index_select(-1, &[3, 3, 1])),
         case!("gather", [[3, 4]], [U], |t, x| {
-            x[0].gather(1, idx(&[3, 5], &[0, 3, 3, 1, 0, 2, 2, 2, 0, 1, 3, 1, 0, 1, 3]))
+            x[0].gather(
+                1,
+                idx(&[3, 5], &[0, 3, 3, 1, 0, 2, 2, 2, 0, 1, 3, 1, 0, 1, 3]),
+            )
         }),
-        case!("gather/axis0", [[3, 2]], [U], |t, x| x[0].gather(0, idx(&[4, 2], &[2, 0, 2, 2, 0, 1, 1, 0]))),
+        case!("gather/axis0", [[3, 2]], [U], |t, x| x[0]
+            .gather(0, idx(&[4, 2], &[2, 0, 2, 2, 0, 1, 1, 0]))),
         case!("scatter_add", [[3, 4]], [U], |t, x| {
             x[0].scatter_add(1, idx(&[3, 4], &[0, 2, 0, 0, 1, 1, 2, 1, 2, 0, 0, 2]), 3)
         }),
@@ -436,22 +545,41 @@ pub fn builtin_cases() -> Vec<Case> {
         case!("dot", [[4, 3], [4, 3]], [U, U], |t, x| x[0].dot(x[1])),
         case!("dot/bcast", [[4, 3], [3]], [U, U], |t, x| x[0].dot(x[1])),
         case!("cross", [[4, 3], [4, 3]], [U, U], |t, x| x[0].cross(x[1])),
-        case!("cross/bcast", [[3], [2, 3]], [U, U], |t, x| x[0].cross(x[1])),
-        case!("normalize", [[4, 3]], [Signed(0.3, 1.0)], |t, x| x[0].normalize(c(1e-6))),
-        case!("normalize/below-eps", [[2, 3]], [Signed(0.01, 0.02)], |t, x| x[0].normalize(c(0.5))),
+        case!("cross/bcast", [[3], [2, 3]], [U, U], |t, x| x[0]
+            .cross(x[1])),
+        case!("normalize", [[4, 3]], [Signed(0.3, 1.0)], |t, x| x[0]
+            .normalize(c(1e-6))),
+        case!(
+            "normalize/below-eps",
+            [[2, 3]],
+            [Signed(0.01, 0.02)],
+            |t, x| x[0].normalize(c(0.5))
+        ),
         case!("norm", [[4, 3]], [Signed(0.3, 1.0)], |t, x| x[0].norm()),
         // ---- small composite graphs ----
         case!("composite/mlp", [[4, 3], [3, 5], [5]], [U, U, U], |t, x| {
             (x[0].matmul(x[1]) + x[2]).tanh().logsumexp(-1, false)
         }),
-        case!("composite/face-normal", [[3, 3], [3]], [U, Signed(0.5, 1.0)], |t, x| {
-            let (v0, v1, v2) = (x[0].slice(0, 0, 1), x[0].slice(0, 1, 2), x[0].slice(0, 2, 3));
-            let n = (v1 - v0).cross(v2 - v0).normalize(c(1e-9));
-            n.dot(x[1].normalize(c(1e-9))).sigmoid()
-        }),
-        case!("composite/chain", [[3, 4], [4]], [Uniform(0.5, 1.5), Uniform(0.5, 1.5)], |t, x| {
-            ((x[0] * x[1] + c::<T>(1.0)).ln().sigmoid() / x[1]).matmul(x[1])
-        }),
+        case!(
+            "composite/face-normal",
+            [[3, 3], [3]],
+            [U, Signed(0.5, 1.0)],
+            |t, x| {
+                let (v0, v1, v2) = (
+                    x[0].slice(0, 0, 1),
+                    x[0].slice(0, 1, 2),
+                    x[0].slice(0, 2, 3),
+                );
+                let n = (v1 - v0).cross(v2 - v0).normalize(c(1e-9));
+                n.dot(x[1].normalize(c(1e-9))).sigmoid()
+            }
+        ),
+        case!(
+            "composite/chain",
+            [[3, 4], [4]],
+            [Uniform(0.5, 1.5), Uniform(0.5, 1.5)],
+            |t, x| ((x[0] * x[1] + c::<T>(1.0)).ln().sigmoid() / x[1]).matmul(x[1])
+        ),
     ]
 }
 
@@ -481,11 +609,16 @@ mod tests {
         let d = Gen::Distinct(-2.0, 2.0).sample(&mut rng, &[5, 4]);
         let mut v: Vec<f64> = d.iter().copied().collect();
         v.sort_by(f64::total_cmp);
-        assert!(v.windows(2).all(|w| w[1] - w[0] >= 0.5 * 4.0 / 20.0 - 1e-12));
+        assert!(v
+            .windows(2)
+            .all(|w| w[1] - w[0] >= 0.5 * 4.0 / 20.0 - 1e-12));
         let a = Gen::Lattice(0.0).sample(&mut rng, &[200]);
         let b = Gen::Lattice(0.5).sample(&mut rng, &[200]);
         assert!(a.iter().all(|&x| (x.abs() - 0.5).abs() >= 0.3 - 1e-12));
-        assert!(a.iter().zip(b.iter()).all(|(x, y)| (x - y).abs() >= 0.1 - 1e-12));
+        assert!(a
+            .iter()
+            .zip(b.iter())
+            .all(|(x, y)| (x - y).abs() >= 0.1 - 1e-12));
         let s = Gen::Signed(0.2, 2.0).sample(&mut rng, &[200]);
         assert!(s.iter().all(|&x| x.abs() >= 0.2) && s.iter().any(|&x| x < 0.0));
     }
@@ -495,7 +628,10 @@ mod tests {
         let all = builtin_cases();
         let mm: Vec<_> = all.iter().filter(|c| c.matches("matmul")).collect();
         assert_eq!(mm.len(), 8);
-        assert_eq!(all.iter().filter(|c| c.matches("matmul/mat-vec")).count(), 1);
+        assert_eq!(
+            all.iter().filter(|c| c.matches("matmul/mat-vec")).count(),
+            1
+        );
         assert_eq!(all.iter().filter(|c| c.matches("max")).count(), 0);
         assert!(run_all(Some("no-such-op")).is_empty());
     }

@@ -296,7 +296,11 @@ impl<T: Real> Tape<T> {
             Ok(o) => {
                 let err = AutodiffError::Op {
                     op: op.name(),
-                    detail: format!("forward returned {} outputs, {} expected", o.len(), n_outputs),
+                    detail: format!(
+                        "forward returned {} outputs, {} expected",
+                        o.len(),
+                        n_outputs
+                    ),
                 };
                 return self.poison(err, n_outputs);
             }
@@ -413,7 +417,10 @@ impl<T: Real> Tape<T> {
                 .outputs
                 .iter()
                 .zip(&zeros)
-                .map(|(&o, z)| z.as_ref().unwrap_or_else(|| grads[o as usize].as_ref().unwrap()))
+                .map(|(&o, z)| {
+                    z.as_ref()
+                        .unwrap_or_else(|| grads[o as usize].as_ref().unwrap())
+                })
                 .collect();
             let in_vals: SmallVec<[&Tensor<T>; 4]> = rec
                 .inputs
@@ -421,7 +428,11 @@ impl<T: Real> Tape<T> {
                 .map(|&i| &*inner.slots[i as usize].value)
                 .collect();
             needs.clear();
-            needs.extend(rec.inputs.iter().map(|&i| inner.slots[i as usize].requires_grad));
+            needs.extend(
+                rec.inputs
+                    .iter()
+                    .map(|&i| inner.slots[i as usize].requires_grad),
+            );
             let ctx = BackwardCtx {
                 inputs: &in_vals,
                 outputs: &out_vals,
@@ -501,7 +512,11 @@ impl<'t, T: Real> Var<'t, T> {
     pub fn item(&self) -> Result<T> {
         let v = self.value()?;
         if v.len() != 1 {
-            return Err(AutodiffError::shape("item", &[v.shape()], "item needs one element"));
+            return Err(AutodiffError::shape(
+                "item",
+                &[v.shape()],
+                "item needs one element",
+            ));
         }
         Ok(*v.iter().next().expect("one element"))
     }
@@ -514,7 +529,9 @@ impl<'t, T: Real> Var<'t, T> {
     }
     /// Number of dimensions.
     pub fn ndim(&self) -> usize {
-        self.tape.inner.borrow().slots[self.id as usize].value.ndim()
+        self.tape.inner.borrow().slots[self.id as usize]
+            .value
+            .ndim()
     }
     /// Number of elements.
     pub fn len(&self) -> usize {

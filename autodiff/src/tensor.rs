@@ -6,6 +6,8 @@
 //! threads, and reduce partial results in chunk order, so results are bit-identical for any
 //! rayon pool size.
 
+use std::mem::MaybeUninit;
+
 use ndarray::{ArrayD, ArrayViewD, Axis, IxDyn, Zip};
 use rayon::prelude::*;
 
@@ -54,8 +56,16 @@ pub fn broadcast_shapes(op: &'static str, a: &[usize], b: &[usize]) -> Result<Ve
     let n = a.len().max(b.len());
     let mut out = vec![0; n];
     for i in 0..n {
-        let da = if i + a.len() >= n { a[i + a.len() - n] } else { 1 };
-        let db = if i + b.len() >= n { b[i + b.len() - n] } else { 1 };
+        let da = if i + a.len() >= n {
+            a[i + a.len() - n]
+        } else {
+            1
+        };
+        let db = if i + b.len() >= n {
+            b[i + b.len() - n]
+        } else {
+            1
+        };
         out[i] = if da == db || db == 1 {
             da
         } else if da == 1 {
@@ -105,19 +115,103 @@ pub fn sum_axis_det<T: Real>(x: &ArrayViewD<T>, axis: usize) -> Tensor<T> {
     out
 }
 
+/// Sum of a slice in a fixed order: 16 interleaved partial sums (vectorisable), added
+/// pairwise, then the tail.
+pub fn sum_slice<T: Real>(s: &[T]) -> T {
+    let mut acc = [T::zero(); 16];
+    let mut it = s.chunks_exact(16);
+    for c in &mut it {
+        for (a, &v) in acc.iter_mut().zip(c) {
+            *a += v;
+        }
+    }
+    let mut w = 16;
+    while w > 1 {
+        w /= 2;
+        for k in 0..w {
+            acc[k] += acc[k + w];
+        }
+    }
+    it.remainder().iter().fold(acc[0], |a, &v| a + v)
+}
+
 /// Sum of all elements: fixed-size chunks summed in parallel, partial sums added in order.
 pub fn sum_all_det<T: Real>(x: &Tensor<T>) -> T {
     match x.as_slice() {
         Some(s) if s.len() >= PAR_MIN_LEN => {
-            let parts: Vec<T> = s
-                .par_chunks(REDUCE_CHUNK)
-                .map(|c| c.iter().copied().sum())
-                .collect();
-            parts.into_iter().sum()
+            let parts: Vec<T> = s.par_chunks(REDUCE_CHUNK).map(sum_slice).collect();
+            parts.into_iter().fold(T::zero(), |a, v| a + v)
         }
-        Some(s) => s.iter().copied().sum(),
+        Some(s) => sum_slice(s),
         None => x.iter().copied().sum(),
     }
+}
+
+/// Elements per task of the parallel elementwise kernels (fixed, so results never depend on
+/// the number of threads).
+pub const EW_CHUNK: usize = 1 << 14;
+
+/// A vector of `n` elements, each chunk of [`EW_CHUNK`] filled by `fill(chunk, offset)` (in
+/// parallel from [`PAR_MIN_LEN`] elements). `fill` must write every element of its chunk.
+fn build<T: Real>(n: usize, fill: impl Fn(&mut [MaybeUninit<T>], usize) + Sync) -> Vec<T> {
+    let mut v = Vec::with_capacity(n);
+    let spare = &mut v.spare_capacity_mut()[..n];
+    if n >= PAR_MIN_LEN {
+        spare
+            .par_chunks_mut(EW_CHUNK)
+            .enumerate()
+            .for_each(|(i, c)| fill(c, i * EW_CHUNK));
+    } else {
+        fill(spare, 0);
+    }
+    // SAFETY: every caller's `fill` writes each element of the chunk it is given (they zip the
+    // chunk with input slices of the same length), so all `n` elements are initialised. If
+    // `fill` panics we never get here and the vector is dropped empty.
+    unsafe { v.set_len(n) };
+    v
+}
+
+/// Elementwise loop bodies, compiled twice on x86-64: for the baseline target and with AVX2 +
+/// FMA, picked at run time. The closures are inlined into each, so that their arithmetic (and
+/// the polynomials of [`crate::vmath`]) vectorises at the wider width where available.
+macro_rules! multiversion {
+    ($name:ident, $body:ident, ($($a:ident: $ta:ty),*), $f:ident: [$($tf:tt)+]) => {
+        #[inline(always)]
+        fn $body<T: Real, F: $($tf)+>(o: &mut [MaybeUninit<T>], $($a: $ta,)* $f: &F) {
+            let n = o.len();
+            $(let $a = &$a[..n];)*
+            for (i, o) in o.iter_mut().enumerate() {
+                o.write($f($($a[i]),*));
+            }
+        }
+        fn $name<T: Real, F: $($tf)+>(o: &mut [MaybeUninit<T>], $($a: $ta,)* $f: &F) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn wide<T: Real, F: $($tf)+>(o: &mut [MaybeUninit<T>], $($a: $ta,)* $f: &F) {
+                    $body(o, $($a,)* $f)
+                }
+                if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU has the features `wide` is compiled for.
+                    return unsafe { wide(o, $($a,)* $f) };
+                }
+            }
+            $body(o, $($a,)* $f)
+        }
+    };
+}
+
+multiversion!(fill1, fill1_body, (a: &[T]), f: [Fn(T) -> T]);
+multiversion!(fill2, fill2_body, (a: &[T], b: &[T]), f: [Fn(T, T) -> T]);
+multiversion!(fill3, fill3_body, (a: &[T], b: &[T], c: &[T]), f: [Fn(T, T, T) -> T]);
+
+/// Row-major slice of a view, if it has one.
+fn std_slice<'a, T: Real>(x: &'a ArrayViewD<'_, T>) -> Option<&'a [T]> {
+    x.as_slice()
+}
+
+fn from_parts<T: Real>(shape: &[usize], v: Vec<T>) -> Tensor<T> {
+    ArrayD::from_shape_vec(IxDyn(shape), v).expect("length matches the shape")
 }
 
 /// `f` applied to every element (parallel for large tensors).
@@ -125,10 +219,41 @@ pub fn map1<T: Real, F>(x: &Tensor<T>, f: F) -> Tensor<T>
 where
     F: Fn(T) -> T + Sync + Send,
 {
+    if let Some(a) = x.as_slice() {
+        let v = build(a.len(), |o, at| fill1(o, &a[at..at + o.len()], &f));
+        return from_parts(x.shape(), v);
+    }
     if x.len() >= PAR_MIN_LEN {
         Zip::from(x).par_map_collect(|&a| f(a))
     } else {
         x.mapv(f)
+    }
+}
+
+/// `fast` applied to every element, and `exact` where `ok` fails (the vectorised `f32`
+/// transcendentals and their range: see [`crate::vmath`]).
+pub fn map1_fast<T: Real, F, P, E>(x: &Tensor<T>, fast: F, ok: P, exact: E) -> Tensor<T>
+where
+    F: Fn(T) -> T + Sync + Send,
+    P: Fn(T) -> bool + Sync + Send,
+    E: Fn(T) -> T + Sync + Send,
+{
+    match x.as_slice() {
+        Some(a) if T::FAST_MATH => {
+            let v = build(a.len(), |o, at| {
+                let a = &a[at..at + o.len()];
+                fill1(o, a, &fast);
+                if !a.iter().fold(true, |acc, &v| acc & ok(v)) {
+                    for (o, &v) in o.iter_mut().zip(a) {
+                        if !ok(v) {
+                            o.write(exact(v));
+                        }
+                    }
+                }
+            });
+            from_parts(x.shape(), v)
+        }
+        _ => map1(x, exact),
     }
 }
 
@@ -137,6 +262,15 @@ pub fn map2<T: Real, F>(x: &ArrayViewD<T>, y: &ArrayViewD<T>, f: F) -> Tensor<T>
 where
     F: Fn(T, T) -> T + Sync + Send,
 {
+    if let (Some(a), Some(b)) = (std_slice(x), std_slice(y)) {
+        if x.shape() == y.shape() {
+            let v = build(a.len(), |o, at| {
+                let r = at..at + o.len();
+                fill2(o, &a[r.clone()], &b[r], &f)
+            });
+            return from_parts(x.shape(), v);
+        }
+    }
     if x.len() >= PAR_MIN_LEN {
         Zip::from(x).and(y).par_map_collect(|&a, &b| f(a, b))
     } else {
@@ -144,11 +278,53 @@ where
     }
 }
 
+/// [`map2`] with a fast function, and `exact` where `ok` fails.
+pub fn map2_fast<T: Real, F, P, E>(
+    x: &ArrayViewD<T>,
+    y: &ArrayViewD<T>,
+    fast: F,
+    ok: P,
+    exact: E,
+) -> Tensor<T>
+where
+    F: Fn(T, T) -> T + Sync + Send,
+    P: Fn(T, T) -> bool + Sync + Send,
+    E: Fn(T, T) -> T + Sync + Send,
+{
+    if let (Some(a), Some(b), true) = (std_slice(x), std_slice(y), T::FAST_MATH) {
+        if x.shape() == y.shape() {
+            let v = build(a.len(), |o, at| {
+                let r = at..at + o.len();
+                let (a, b) = (&a[r.clone()], &b[r]);
+                fill2(o, a, b, &fast);
+                if !a.iter().zip(b).fold(true, |acc, (&u, &v)| acc & ok(u, v)) {
+                    for ((o, &u), &v) in o.iter_mut().zip(a).zip(b) {
+                        if !ok(u, v) {
+                            o.write(exact(u, v));
+                        }
+                    }
+                }
+            });
+            return from_parts(x.shape(), v);
+        }
+    }
+    map2(x, y, exact)
+}
+
 /// `f` over three tensors of the same shape.
 pub fn map3<T: Real, F>(x: &ArrayViewD<T>, y: &ArrayViewD<T>, z: &ArrayViewD<T>, f: F) -> Tensor<T>
 where
     F: Fn(T, T, T) -> T + Sync + Send,
 {
+    if let (Some(a), Some(b), Some(c)) = (std_slice(x), std_slice(y), std_slice(z)) {
+        if x.shape() == y.shape() && x.shape() == z.shape() {
+            let v = build(a.len(), |o, at| {
+                let r = at..at + o.len();
+                fill3(o, &a[r.clone()], &b[r.clone()], &c[r], &f)
+            });
+            return from_parts(x.shape(), v);
+        }
+    }
     if x.len() >= PAR_MIN_LEN {
         Zip::from(x)
             .and(y)
@@ -165,7 +341,9 @@ where
 /// Checks that every element is finite.
 pub fn all_finite<T: Real>(x: &Tensor<T>) -> bool {
     match x.as_slice() {
-        Some(s) if s.len() >= PAR_MIN_LEN => s.par_chunks(REDUCE_CHUNK).all(|c| c.iter().all(|v| v.is_finite())),
+        Some(s) if s.len() >= PAR_MIN_LEN => s
+            .par_chunks(REDUCE_CHUNK)
+            .all(|c| c.iter().all(|v| v.is_finite())),
         _ => x.iter().all(|v| v.is_finite()),
     }
 }
@@ -181,11 +359,17 @@ mod tests {
 
     #[test]
     fn broadcasting_follows_numpy() {
-        assert_eq!(broadcast_shapes("t", &[3, 1, 5], &[4, 1]).unwrap(), vec![3, 4, 5]);
+        assert_eq!(
+            broadcast_shapes("t", &[3, 1, 5], &[4, 1]).unwrap(),
+            vec![3, 4, 5]
+        );
         assert_eq!(broadcast_shapes("t", &[], &[2, 2]).unwrap(), vec![2, 2]);
         let e = broadcast_shapes("add", &[3, 2], &[4, 2]).unwrap_err();
         let msg = e.to_string();
-        assert!(msg.contains("add") && msg.contains("[3, 2]") && msg.contains("[4, 2]"), "{msg}");
+        assert!(
+            msg.contains("add") && msg.contains("[3, 2]") && msg.contains("[4, 2]"),
+            "{msg}"
+        );
     }
 
     #[test]

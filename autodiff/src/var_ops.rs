@@ -119,13 +119,15 @@ impl<'t, T: Real> Var<'t, T> {
     pub fn sum_axes(self, axes: &[isize], keepdim: bool) -> Self {
         let n = self.ndim();
         let a = axes.iter().map(|&a| axis(n, a)).collect();
-        self.tape().apply(SumOp::new(Some(a), keepdim, false), &[self])
+        self.tape()
+            .apply(SumOp::new(Some(a), keepdim, false), &[self])
     }
     /// Mean over the given axes.
     pub fn mean_axes(self, axes: &[isize], keepdim: bool) -> Self {
         let n = self.ndim();
         let a = axes.iter().map(|&a| axis(n, a)).collect();
-        self.tape().apply(SumOp::new(Some(a), keepdim, true), &[self])
+        self.tape()
+            .apply(SumOp::new(Some(a), keepdim, true), &[self])
     }
     /// Maximum over one axis.
     pub fn max_axis(self, ax: isize, keepdim: bool) -> Self {
@@ -179,7 +181,14 @@ impl<'t, T: Real> Var<'t, T> {
     /// `start..end` along `axis`.
     pub fn slice(self, ax: isize, start: usize, end: usize) -> Self {
         let a = axis(self.ndim(), ax);
-        self.tape().apply(SliceOp { axis: a, start, end }, &[self])
+        self.tape().apply(
+            SliceOp {
+                axis: a,
+                start,
+                end,
+            },
+            &[self],
+        )
     }
     /// Broadcast to `shape`.
     pub fn broadcast_to(self, shape: &[usize]) -> Self {
@@ -262,8 +271,20 @@ macro_rules! var_binop {
 
 var_binop!(Add, add, Add, Unary::AddScalar, Unary::AddScalar);
 var_binop!(Mul, mul, Mul, Unary::MulScalar, Unary::MulScalar);
-var_binop!(Sub, sub, Sub, |c: T| Unary::AddScalar(-c), Unary::RSubScalar);
-var_binop!(Div, div, Div, |c: T| Unary::MulScalar(c.recip()), Unary::RDivScalar);
+var_binop!(
+    Sub,
+    sub,
+    Sub,
+    |c: T| Unary::AddScalar(-c),
+    Unary::RSubScalar
+);
+var_binop!(
+    Div,
+    div,
+    Div,
+    |c: T| Unary::MulScalar(c.recip()),
+    Unary::RDivScalar
+);
 
 impl<'t, T: Real> Neg for Var<'t, T> {
     type Output = Var<'t, T>;

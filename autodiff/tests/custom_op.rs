@@ -45,7 +45,10 @@ impl<T: Real> Op<T> for SoftplusT<T> {
         }
         let tau = tau[[]];
         if !(tau > T::zero()) {
-            return Err(AutodiffError::invalid("softplus_t", format!("temperature must be > 0, got {tau}")));
+            return Err(AutodiffError::invalid(
+                "softplus_t",
+                format!("temperature must be > 0, got {tau}"),
+            ));
         }
         let s = x.mapv(|v| sigmoid(v / tau));
         let y = x.mapv(|v| tau * stable_softplus(v / tau));
@@ -72,19 +75,26 @@ impl<T: Real> Op<T> for SoftplusT<T> {
         let mut gtau = T::zero();
         let need_tau = ctx.needs_grad[1];
         let mut k = 0usize;
-        Zip::from(x).and(y).and(s).and(gy).for_each(|&x, &y, &s, &g| {
-            let z = x / tau;
-            let ds = s * (one - s);
-            let g2 = gs.map_or(T::zero(), |gs| gs.as_slice().expect("standard")[k]);
-            if let Some(gx) = gx.as_mut() {
-                gx.as_slice_mut().expect("fresh")[k] = g * s + g2 * ds / tau;
-            }
-            if need_tau {
-                gtau += g * (y / tau - z * s) - g2 * ds * z / tau;
-            }
-            k += 1;
-        });
-        Ok(vec![gx, need_tau.then(|| ArrayD::from_elem(IxDyn(&[]), gtau))])
+        Zip::from(x)
+            .and(y)
+            .and(s)
+            .and(gy)
+            .for_each(|&x, &y, &s, &g| {
+                let z = x / tau;
+                let ds = s * (one - s);
+                let g2 = gs.map_or(T::zero(), |gs| gs.as_slice().expect("standard")[k]);
+                if let Some(gx) = gx.as_mut() {
+                    gx.as_slice_mut().expect("fresh")[k] = g * s + g2 * ds / tau;
+                }
+                if need_tau {
+                    gtau += g * (y / tau - z * s) - g2 * ds * z / tau;
+                }
+                k += 1;
+            });
+        Ok(vec![
+            gx,
+            need_tau.then(|| ArrayD::from_elem(IxDyn(&[]), gtau)),
+        ])
     }
 }
 
@@ -176,7 +186,12 @@ fn matches_the_composed_builtin_version() {
         tape.backward((fused * w).sum()).unwrap(),
         tape.backward((composed * w).sum()).unwrap(),
     );
-    for (a, b) in fused.value().unwrap().iter().zip(composed.value().unwrap().iter()) {
+    for (a, b) in fused
+        .value()
+        .unwrap()
+        .iter()
+        .zip(composed.value().unwrap().iter())
+    {
         assert!((a - b).abs() < 1e-13, "{a} vs {b}");
     }
     for v in [x, tau] {
@@ -222,7 +237,9 @@ fn inside_a_larger_graph() {
         let t = Tape::<f64>::new();
         let tv = t.leaf(tau.clone());
         let v: Vec<_> = xs.iter().map(|x| t.constant(x.clone())).collect();
-        let l = (softplus_t(v[0].matmul(v[1]) + v[2], tv) - 0.3).square().sum();
+        let l = (softplus_t(v[0].matmul(v[1]) + v[2], tv) - 0.3)
+            .square()
+            .sum();
         (l.item().unwrap(), t.backward(l).unwrap().wrt(tv))
     };
     let (l0, _) = loss_at(&tau);
@@ -241,11 +258,17 @@ fn argument_errors_name_the_custom_op() {
     let tau = tape.leaf(ArrayD::from_elem(IxDyn(&[1]), 1.0));
     let e = softplus_t(x, tau).value().unwrap_err();
     let m = e.to_string();
-    assert!(m.contains("softplus_t") && m.contains("[2, 3]") && m.contains("[1]"), "{m}");
+    assert!(
+        m.contains("softplus_t") && m.contains("[2, 3]") && m.contains("[1]"),
+        "{m}"
+    );
     let tape = Tape::<f64>::new();
     let x = tape.leaf(ArrayD::zeros(IxDyn(&[2])));
     let e = softplus_t(x, tape.scalar(-1.0)).value().unwrap_err();
-    assert!(e.to_string().contains("softplus_t") && e.to_string().contains("-1"), "{e}");
+    assert!(
+        e.to_string().contains("softplus_t") && e.to_string().contains("-1"),
+        "{e}"
+    );
     // The sticky error flows through the multi-output variant too.
     let (a, b) = softplus_t2(x, tape.scalar(-1.0));
     assert!(a.value().is_err() && b.value().is_err());

@@ -45,7 +45,10 @@ fn run(d: &Data) -> (u32, Vec<Vec<u32>>) {
     let bits = |t: &Tensor<f32>| t.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
     (
         loss.item().unwrap().to_bits(),
-        [x, basis, coef, w].iter().map(|&v| bits(g.get(v).unwrap())).collect(),
+        [x, basis, coef, w]
+            .iter()
+            .map(|&v| bits(g.get(v).unwrap()))
+            .collect(),
     )
 }
 
@@ -68,7 +71,10 @@ fn values_and_gradients_are_bit_identical_across_thread_counts() {
         assert_eq!(r.0, results[0].0, "loss differs with pool {k}");
         for (i, (a, b)) in r.1.iter().zip(&results[0].1).enumerate() {
             let diff = a.iter().zip(b).filter(|(x, y)| x != y).count();
-            assert_eq!(diff, 0, "gradient {i}: {diff} elements differ with pool {k}");
+            assert_eq!(
+                diff, 0,
+                "gradient {i}: {diff} elements differ with pool {k}"
+            );
         }
     }
     // And the same pool gives the same result twice.

@@ -13,9 +13,15 @@ fn zeros(shape: &[usize]) -> Tensor<f64> {
 /// The error of a poisoned variable; checks that its message names `op` and every string in
 /// `parts` (shapes, details).
 fn expect_err(v: Var<'_, f64>, op: &str, parts: &[&str]) -> AutodiffError {
-    let e = v.value().err().unwrap_or_else(|| panic!("{op}: expected an error"));
+    let e = v
+        .value()
+        .err()
+        .unwrap_or_else(|| panic!("{op}: expected an error"));
     let m = e.to_string();
-    assert!(m.starts_with(op) || m.contains(&format!("{op}:")), "{op}: {m}");
+    assert!(
+        m.starts_with(op) || m.contains(&format!("{op}:")),
+        "{op}: {m}"
+    );
     for p in parts {
         assert!(m.contains(p), "{op}: message {m:?} lacks {p:?}");
     }
@@ -38,7 +44,10 @@ fn add_with_incompatible_broadcast() {
     });
     assert!(matches!(e, AutodiffError::Shape { op: "add", .. }));
     for (name, f) in [
-        ("sub", (|a, b| a - b) as for<'t> fn(Var<'t, f64>, Var<'t, f64>) -> Var<'t, f64>),
+        (
+            "sub",
+            (|a, b| a - b) as for<'t> fn(Var<'t, f64>, Var<'t, f64>) -> Var<'t, f64>,
+        ),
         ("mul", |a, b| a * b),
         ("div", |a, b| a / b),
         ("pow", |a, b| a.pow(b)),
@@ -63,7 +72,11 @@ fn where_and_broadcast_to_mismatch() {
     });
     with_tape(|t| {
         let a = t.leaf(zeros(&[2, 3]));
-        expect_err(a.broadcast_to(&[4, 3]), "broadcast_to", &["[2, 3]", "[4, 3]"])
+        expect_err(
+            a.broadcast_to(&[4, 3]),
+            "broadcast_to",
+            &["[2, 3]", "[4, 3]"],
+        )
     });
     with_tape(|t| {
         // Broadcasting "down" to fewer dimensions is not allowed either.
@@ -87,7 +100,11 @@ fn matmul_mismatch() {
         with_tape(|t| {
             let a = t.leaf(zeros(&sa));
             let b = t.leaf(zeros(&sb));
-            let e = expect_err(a.matmul(b), "matmul", &[&format!("{sa:?}"), &format!("{sb:?}")]);
+            let e = expect_err(
+                a.matmul(b),
+                "matmul",
+                &[&format!("{sa:?}"), &format!("{sb:?}")],
+            );
             assert!(matches!(e, AutodiffError::Shape { op: "matmul", .. }));
             e
         });
@@ -98,7 +115,11 @@ fn matmul_mismatch() {
 fn shape_op_errors() {
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
-        expect_err(a.reshape(&[5, 2]), "reshape", &["[3, 4]", "[5, 2]", "12", "10"])
+        expect_err(
+            a.reshape(&[5, 2]),
+            "reshape",
+            &["[3, 4]", "[5, 2]", "12", "10"],
+        )
     });
     with_tape(|t| {
         let a = t.leaf(zeros(&[2, 3]));
@@ -141,13 +162,21 @@ fn shape_op_errors() {
 fn index_errors() {
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
-        let e = expect_err(a.index_select(0, &[0, 3]), "index_select", &["[3, 4]", "index 3"]);
+        let e = expect_err(
+            a.index_select(0, &[0, 3]),
+            "index_select",
+            &["[3, 4]", "index 3"],
+        );
         assert!(matches!(e, AutodiffError::Index { .. }));
         e
     });
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
-        expect_err(a.index_select(2, &[0]), "index_select", &["[3, 4]", "axis 2"])
+        expect_err(
+            a.index_select(2, &[0]),
+            "index_select",
+            &["[3, 4]", "axis 2"],
+        )
     });
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
@@ -168,12 +197,20 @@ fn index_errors() {
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
         let idx = ArrayD::from_elem(IxDyn(&[3, 4]), 2usize);
-        expect_err(a.scatter_add(1, idx, 2), "scatter_add", &["[3, 2]", "[3, 4]", "index 2"])
+        expect_err(
+            a.scatter_add(1, idx, 2),
+            "scatter_add",
+            &["[3, 2]", "[3, 4]", "index 2"],
+        )
     });
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
         let idx = ArrayD::from_elem(IxDyn(&[3, 3]), 0usize);
-        expect_err(a.scatter_add(1, idx, 2), "scatter_add", &["[3, 4]", "[3, 3]"])
+        expect_err(
+            a.scatter_add(1, idx, 2),
+            "scatter_add",
+            &["[3, 4]", "[3, 3]"],
+        )
     });
 }
 
@@ -205,7 +242,11 @@ fn vector_op_errors() {
 fn reduction_axis_errors() {
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
-        let e = expect_err(a.max_axis(2, false), "max", &["[3, 4]", "axis 2 out of range"]);
+        let e = expect_err(
+            a.max_axis(2, false),
+            "max",
+            &["[3, 4]", "axis 2 out of range"],
+        );
         assert!(matches!(e, AutodiffError::Index { op: "max", .. }));
         e
     });
@@ -223,7 +264,11 @@ fn reduction_axis_errors() {
     });
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
-        expect_err(a.sum_axes(&[1, -1], false), "sum", &["[3, 4]", "axis 1 repeated"])
+        expect_err(
+            a.sum_axes(&[1, -1], false),
+            "sum",
+            &["[3, 4]", "axis 1 repeated"],
+        )
     });
     with_tape(|t| {
         let a = t.leaf(zeros(&[3, 4]));
@@ -240,7 +285,10 @@ fn backward_of_a_poisoned_loss_returns_the_first_error() {
     let unrelated = a.slice(0, 0, 9); // a second, later error
     let loss = (worse + unrelated).sum();
     let first = tape.error().expect("recorded");
-    assert!(matches!(first, AutodiffError::Shape { op: "reshape", .. }), "{first:?}");
+    assert!(
+        matches!(first, AutodiffError::Shape { op: "reshape", .. }),
+        "{first:?}"
+    );
     let e = tape.backward(loss).err().expect("an error");
     assert_eq!(e, first);
     assert!(e.to_string().contains("reshape") && e.to_string().contains("[3, 4]"));
@@ -260,11 +308,17 @@ fn tape_misuse_errors() {
     let a = t1.leaf(zeros(&[2]));
     let b = t2.leaf(zeros(&[2]));
     let e = (a + b).value().err().expect("another tape");
-    assert!(e.to_string().contains("add") && e.to_string().contains("another tape"), "{e}");
+    assert!(
+        e.to_string().contains("add") && e.to_string().contains("another tape"),
+        "{e}"
+    );
     let e = a.value().unwrap().len();
     assert_eq!(e, 2);
     let e = a.item().err().expect("two elements");
-    assert!(e.to_string().contains("item") && e.to_string().contains("[2]"), "{e}");
+    assert!(
+        e.to_string().contains("item") && e.to_string().contains("[2]"),
+        "{e}"
+    );
 }
 
 /// A custom op that returns the wrong number of outputs or gradients, or a gradient of the
@@ -297,15 +351,34 @@ fn custom_op_contract_errors() {
         grad_shape: grad_shape.to_vec(),
     };
     // Forward returning no output: an error, not a panic.
-    let e = tape.apply(op(0, 1, &[2, 3]), &[a]).value().err().expect("an error");
-    assert!(e.to_string().contains("broken") && e.to_string().contains("0 outputs"), "{e}");
+    let e = tape
+        .apply(op(0, 1, &[2, 3]), &[a])
+        .value()
+        .err()
+        .expect("an error");
+    assert!(
+        e.to_string().contains("broken") && e.to_string().contains("0 outputs"),
+        "{e}"
+    );
     let tape = Tape::<f64>::new();
     let a = tape.leaf(zeros(&[2, 3]));
-    let e = tape.backward(tape.apply(op(1, 2, &[2, 3]), &[a]).sum()).err().expect("an error");
-    assert!(e.to_string().contains("broken") && e.to_string().contains("2 gradients for 1 inputs"), "{e}");
-    let e = tape.backward(tape.apply(op(1, 1, &[3, 2]), &[a]).sum()).err().expect("an error");
+    let e = tape
+        .backward(tape.apply(op(1, 2, &[2, 3]), &[a]).sum())
+        .err()
+        .expect("an error");
+    assert!(
+        e.to_string().contains("broken") && e.to_string().contains("2 gradients for 1 inputs"),
+        "{e}"
+    );
+    let e = tape
+        .backward(tape.apply(op(1, 1, &[3, 2]), &[a]).sum())
+        .err()
+        .expect("an error");
     let m = e.to_string();
-    assert!(m.contains("broken") && m.contains("[2, 3]") && m.contains("[3, 2]"), "{m}");
+    assert!(
+        m.contains("broken") && m.contains("[2, 3]") && m.contains("[3, 2]"),
+        "{m}"
+    );
 }
 
 #[test]
@@ -315,9 +388,16 @@ fn optimiser_shape_mismatch() {
     let g = arr1(&[1.0, 1.0, 1.0, 1.0]).into_dyn();
     let e = adam.step([(&mut p, &g)]).err().expect("an error");
     let m = e.to_string();
-    assert!(m.contains("adam") && m.contains("[3]") && m.contains("[4]"), "{m}");
+    assert!(
+        m.contains("adam") && m.contains("[3]") && m.contains("[4]"),
+        "{m}"
+    );
     assert_eq!(adam.steps(), 0, "a failed step is not counted");
-    assert_eq!(p, arr1(&[1.0, 2.0, 3.0]).into_dyn(), "a failed step changes nothing");
+    assert_eq!(
+        p,
+        arr1(&[1.0, 2.0, 3.0]).into_dyn(),
+        "a failed step changes nothing"
+    );
     // A parameter that changes shape between steps.
     let g3 = arr1(&[1.0, 1.0, 1.0]).into_dyn();
     adam.step([(&mut p, &g3)]).unwrap();
@@ -325,7 +405,10 @@ fn optimiser_shape_mismatch() {
     let g2 = arr1(&[1.0, 1.0]).into_dyn();
     let e = adam.step([(&mut p2, &g2)]).err().expect("an error");
     let m = e.to_string();
-    assert!(m.contains("adam") && m.contains("[3]") && m.contains("[2]") && m.contains("changed shape"), "{m}");
+    assert!(
+        m.contains("adam") && m.contains("[3]") && m.contains("[2]") && m.contains("changed shape"),
+        "{m}"
+    );
     assert_eq!(adam.steps(), 1);
 
     let mut sgd = Sgd::<f64>::new(0.1, 0.9);
@@ -335,9 +418,15 @@ fn optimiser_shape_mismatch() {
     // The first pair is fine, the second is not: nothing is updated.
     let mut r = zeros(&[3]);
     let ones2 = ArrayD::from_elem(IxDyn(&[2, 2]), 1.0);
-    let e = sgd.step([(&mut r, &g3), (&mut q, &gq)]).err().expect("an error");
+    let e = sgd
+        .step([(&mut r, &g3), (&mut q, &gq)])
+        .err()
+        .expect("an error");
     let m = e.to_string();
-    assert!(m.contains("sgd") && m.contains("[2, 2]") && m.contains("[4]"), "{m}");
+    assert!(
+        m.contains("sgd") && m.contains("[2, 2]") && m.contains("[4]"),
+        "{m}"
+    );
     assert_eq!(q, before);
     assert_eq!(r, zeros(&[3]));
     sgd.step([(&mut r, &g3), (&mut q, &ones2)]).unwrap();

@@ -48,7 +48,11 @@ fn diamond_graph() {
     let (b, c) = (a.exp(), a.sin());
     let d = (b * c).sum();
     let g = tape.backward(d).unwrap();
-    close(g.get(a).unwrap(), &av.mapv(|v| v.exp() * (v.sin() + v.cos())), 1e-14);
+    close(
+        g.get(a).unwrap(),
+        &av.mapv(|v| v.exp() * (v.sin() + v.cos())),
+        1e-14,
+    );
     // A deeper diamond: two paths of different length meeting again.
     let tape = Tape::<f64>::new();
     let a = tape.leaf(av.clone());
@@ -76,7 +80,11 @@ fn no_grad_regions_record_nothing_and_outside_still_works() {
         x * 2.0 + 1.0 + inner
     });
     assert!(!tape.is_no_grad());
-    assert_eq!(tape.num_ops(), ops_before, "ops inside no_grad are not recorded");
+    assert_eq!(
+        tape.num_ops(),
+        ops_before,
+        "ops inside no_grad are not recorded"
+    );
     assert!(!y.requires_grad());
     // Only the direct path counts: d/dx sum(y * x) = y with y constant.
     let g = tape.backward((y * x).sum()).unwrap();
@@ -114,9 +122,15 @@ fn backward_from_a_non_scalar_is_an_error() {
     let tape = Tape::<f64>::new();
     let x = tape.leaf(t1(&[1.0, 2.0, 3.0]));
     let e = tape.backward(x * 2.0).err().expect("an error");
-    assert!(matches!(e, AutodiffError::Shape { op: "backward", .. }), "{e:?}");
+    assert!(
+        matches!(e, AutodiffError::Shape { op: "backward", .. }),
+        "{e:?}"
+    );
     let m = e.to_string();
-    assert!(m.contains("backward") && m.contains("[3]") && m.contains("vjp"), "{m}");
+    assert!(
+        m.contains("backward") && m.contains("[3]") && m.contains("vjp"),
+        "{m}"
+    );
     // One-element losses of any rank are fine.
     assert!(tape.backward(x.sum().reshape(&[1, 1])).is_ok());
     assert!(tape.backward(x.slice(0, 1, 2)).is_ok());
@@ -137,7 +151,10 @@ fn vjp_with_a_given_output_gradient() {
     assert!(g.get(w).is_none());
     // The output gradient must have the output's shape.
     let e = tape.vjp(y, t1(&[1.0, 2.0])).err().expect("an error");
-    assert!(e.to_string().contains("vjp") && e.to_string().contains("[2, 3]"), "{e}");
+    assert!(
+        e.to_string().contains("vjp") && e.to_string().contains("[2, 3]"),
+        "{e}"
+    );
     // vjp of a leaf is the given gradient.
     let g = tape.vjp(x, v.clone()).unwrap();
     assert_eq!(g.get(x).unwrap(), &v);
@@ -180,11 +197,18 @@ fn multi_output_op_unused_output_gets_zero_gradient() {
         assert_eq!(s.len(), 1);
         assert!(s[0][0].iter().all(|&v| v == 2.0));
         assert_eq!(s[0][1].shape(), &[3]);
-        assert!(s[0][1].iter().all(|&v| v == 0.0), "unused output gets zeros");
+        assert!(
+            s[0][1].iter().all(|&v| v == 0.0),
+            "unused output gets zeros"
+        );
     }
     // Both outputs used.
     let g = tape.backward((out[0] * 2.0 + out[1]).sum()).unwrap();
-    close(g.get(x).unwrap(), &xv.mapv(|v| 2.0 * v.cos() - v.sin()), 1e-14);
+    close(
+        g.get(x).unwrap(),
+        &xv.mapv(|v| 2.0 * v.cos() - v.sin()),
+        1e-14,
+    );
     // Neither used: the op's backward never runs.
     let n = seen.borrow().len();
     tape.backward(x.sum()).unwrap();
@@ -247,7 +271,11 @@ fn leaves_without_requires_grad_get_nothing_and_their_work_is_skipped() {
     let y = tape.apply(probe(), &[a, b]);
     let g = tape.backward(y.sum()).unwrap();
     assert_eq!(*log.borrow(), vec![vec![true, false]]);
-    assert_eq!(*work.borrow(), [1, 0], "no gradient computed for the constant");
+    assert_eq!(
+        *work.borrow(),
+        [1, 0],
+        "no gradient computed for the constant"
+    );
     close(g.get(a).unwrap(), &bv, 0.0);
     assert!(g.get(b).is_none());
     // Order swapped: the flags follow the inputs.
@@ -301,11 +329,15 @@ impl Op<f64> for WrongSin {
 }
 
 fn good<'t>(t: &'t Tape<f64>, v: &[Var<'t, f64>]) -> Var<'t, f64> {
-    t.apply(WrongSin { bias: 0.0 }, v).tanh().sum_axes(&[1], false)
+    t.apply(WrongSin { bias: 0.0 }, v)
+        .tanh()
+        .sum_axes(&[1], false)
 }
 
 fn bad<'t>(t: &'t Tape<f64>, v: &[Var<'t, f64>]) -> Var<'t, f64> {
-    t.apply(WrongSin { bias: 0.01 }, v).tanh().sum_axes(&[1], false)
+    t.apply(WrongSin { bias: 0.01 }, v)
+        .tanh()
+        .sum_axes(&[1], false)
 }
 
 fn big_bad<'t>(t: &'t Tape<f64>, v: &[Var<'t, f64>]) -> Var<'t, f64> {
@@ -334,12 +366,18 @@ fn gradcheck_fast_mode_agrees_with_full_and_both_catch_a_wrong_backward() {
     assert!(rq.passed(), "{rq}");
     assert_eq!(rq.inputs.len(), 2);
     for r in &rq.inputs {
-        assert!((r.analytic - r.numeric).abs() < 1e-7 * (1.0 + r.numeric.abs()), "{rq}");
+        assert!(
+            (r.analytic - r.numeric).abs() < 1e-7 * (1.0 + r.numeric.abs()),
+            "{rq}"
+        );
         assert!(r.numeric.abs() > 1e-3, "a meaningful direction");
     }
     for (opts, name) in [(&full, "full"), (&fast, "fast")] {
         let r = gradcheck(bad, &xs, opts).unwrap();
-        assert!(!r.passed(), "{name} mode must catch the wrong backward:\n{r}");
+        assert!(
+            !r.passed(),
+            "{name} mode must catch the wrong backward:\n{r}"
+        );
         assert!(!r.inputs[0].passed, "{name}: input 0 is the wrong one\n{r}");
         assert!(r.inputs[1].passed, "{name}: input 1 is right\n{r}");
     }
@@ -408,7 +446,14 @@ fn anomaly_detection_names_the_op_and_the_pass() {
     assert!(y.value().is_ok(), "forward is finite");
     let e = tape.backward(y).err().expect("an anomaly");
     assert!(
-        matches!(e, AutodiffError::Anomaly { op: "nan_backward", pass: Pass::Backward, .. }),
+        matches!(
+            e,
+            AutodiffError::Anomaly {
+                op: "nan_backward",
+                pass: Pass::Backward,
+                ..
+            }
+        ),
         "{e:?}"
     );
     assert!(e.to_string().contains("nan_backward") && e.to_string().contains("backward pass"));
@@ -418,7 +463,17 @@ fn anomaly_detection_names_the_op_and_the_pass() {
     tape.set_detect_anomaly(true);
     let x = tape.leaf(t1(&[0.0, 4.0]));
     let e = tape.backward(x.sqrt().sum()).err().expect("an anomaly");
-    assert!(matches!(e, AutodiffError::Anomaly { op: "sqrt", pass: Pass::Backward, .. }), "{e:?}");
+    assert!(
+        matches!(
+            e,
+            AutodiffError::Anomaly {
+                op: "sqrt",
+                pass: Pass::Backward,
+                ..
+            }
+        ),
+        "{e:?}"
+    );
     // Without detection the backward returns the infinite gradient.
     tape.set_detect_anomaly(false);
     let g = tape.backward(x.sqrt().sum()).unwrap();
@@ -458,7 +513,9 @@ fn nan_inputs_never_panic_and_propagate() {
         ("max_axis", |x, _| x.max_axis(1, false)),
         ("logsumexp", |x, _| x.logsumexp(1, true)),
         ("matmul", |x, y| x.matmul(y.t())),
-        ("matmul/vec", |x, y| x.matmul(y.slice(0, 0, 1).reshape(&[3]))),
+        ("matmul/vec", |x, y| {
+            x.matmul(y.slice(0, 0, 1).reshape(&[3]))
+        }),
         ("dot", |x, y| x.dot(y)),
         ("cross", |x, y| x.cross(y)),
         ("normalize", |x, _| x.normalize(1e-6)),
@@ -466,8 +523,12 @@ fn nan_inputs_never_panic_and_propagate() {
         ("permute", |x, _| x.t()),
         ("slice", |x, _| x.slice(1, 1, 3)),
         ("index_select", |x, _| x.index_select(1, &[1, 1])),
-        ("gather", |x, _| x.gather(1, ArrayD::from_elem(IxDyn(&[2, 1]), 1))),
-        ("scatter_add", |x, _| x.scatter_add(1, ArrayD::zeros(IxDyn(&[2, 3])), 1)),
+        ("gather", |x, _| {
+            x.gather(1, ArrayD::from_elem(IxDyn(&[2, 1]), 1))
+        }),
+        ("scatter_add", |x, _| {
+            x.scatter_add(1, ArrayD::zeros(IxDyn(&[2, 3])), 1)
+        }),
         ("broadcast_to", |x, _| x.broadcast_to(&[4, 2, 3])),
     ];
     for (name, f) in cases {
@@ -479,18 +540,26 @@ fn nan_inputs_never_panic_and_propagate() {
         let out = f(x, y);
         let v = out.value().unwrap_or_else(|e| panic!("{name}: {e}"));
         assert!(v.iter().any(|v| v.is_nan()), "{name}: NaN dropped: {v}");
-        let g = tape.backward(out.sum()).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let g = tape
+            .backward(out.sum())
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(g.wrt(x).shape(), &[2, 3], "{name}");
     }
     // `where` picks per element: the NaN survives where the mask takes it.
     let tape = Tape::<f64>::new();
     let x = tape.leaf(t1(&[f64::NAN, 1.0, 2.0]));
     let y = tape.leaf(t1(&[0.0, f64::NAN, 0.0]));
-    let w = x.where_(arr1(&[true, true, false]).into_dyn(), y).value().unwrap();
+    let w = x
+        .where_(arr1(&[true, true, false]).into_dyn(), y)
+        .value()
+        .unwrap();
     assert!(w[0].is_nan() && w[1] == 1.0 && w[2] == 0.0);
     // NaN as a parameter of scalar ops.
     let tape = Tape::<f64>::new();
     let x = tape.leaf(t1(&[1.0, 2.0]));
     assert!((x * f64::NAN).value().unwrap().iter().all(|v| v.is_nan()));
-    assert!(x.clamp(f64::NAN, 1.0).value().is_err(), "NaN clamp bounds are an argument error");
+    assert!(
+        x.clamp(f64::NAN, 1.0).value().is_err(),
+        "NaN clamp bounds are an argument error"
+    );
 }

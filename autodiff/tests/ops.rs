@@ -24,7 +24,11 @@ fn every_builtin_case_passes_gradcheck_and_f32_agrees() {
             r.op,
             r.f32_rel
         );
-        assert!(r.max_abs_err.is_finite() && r.max_rel_err.is_finite(), "{}", r.op);
+        assert!(
+            r.max_abs_err.is_finite() && r.max_rel_err.is_finite(),
+            "{}",
+            r.op
+        );
     }
 }
 
@@ -33,12 +37,56 @@ fn suite_covers_every_builtin_op() {
     let cases = builtin_cases();
     let names: Vec<&str> = cases.iter().map(|c| c.base()).collect();
     for op in [
-        "add", "sub", "mul", "div", "neg", "exp", "log", "sqrt", "pow", "pow_scalar", "scalar_pow",
-        "add_scalar", "sub_scalar", "mul_scalar", "div_scalar", "rsub_scalar", "rdiv_scalar", "sin",
-        "cos", "tanh", "sigmoid", "relu", "abs", "square", "recip", "clamp", "minimum", "maximum",
-        "where", "sum", "mean", "sum_axes", "mean_axes", "max_axis", "logsumexp", "matmul",
-        "reshape", "permute", "t", "slice", "concat", "stack", "broadcast_to", "gather",
-        "scatter_add", "index_select", "dot", "cross", "normalize", "norm",
+        "add",
+        "sub",
+        "mul",
+        "div",
+        "neg",
+        "exp",
+        "log",
+        "sqrt",
+        "pow",
+        "pow_scalar",
+        "scalar_pow",
+        "add_scalar",
+        "sub_scalar",
+        "mul_scalar",
+        "div_scalar",
+        "rsub_scalar",
+        "rdiv_scalar",
+        "sin",
+        "cos",
+        "tanh",
+        "sigmoid",
+        "relu",
+        "abs",
+        "square",
+        "recip",
+        "clamp",
+        "minimum",
+        "maximum",
+        "where",
+        "sum",
+        "mean",
+        "sum_axes",
+        "mean_axes",
+        "max_axis",
+        "logsumexp",
+        "matmul",
+        "reshape",
+        "permute",
+        "t",
+        "slice",
+        "concat",
+        "stack",
+        "broadcast_to",
+        "gather",
+        "scatter_add",
+        "index_select",
+        "dot",
+        "cross",
+        "normalize",
+        "norm",
     ] {
         assert!(names.contains(&op), "no suite case for {op}");
     }
@@ -58,7 +106,9 @@ fn suite_covers_every_builtin_op() {
     }
     // Shapes with size-1 dimensions and 0-d scalars are covered.
     assert!(cases.iter().any(|c| c.shapes.iter().any(|s| s.is_empty())));
-    assert!(cases.iter().any(|c| c.shapes.iter().any(|s| s.len() > 1 && s.contains(&1))));
+    assert!(cases
+        .iter()
+        .any(|c| c.shapes.iter().any(|s| s.len() > 1 && s.contains(&1))));
 }
 
 #[test]

@@ -263,7 +263,7 @@ fn per_vertex3<T: Real>(file: &str, a: ArrayD<f64>) -> Result<Array2<T>> {
     let shape = a.shape().to_vec();
     let a = match shape.len() {
         2 if shape[1] == 3 => a,
-        1 if shape[0] % 3 == 0 => a
+        1 if shape[0].rem_euclid(3) == 0 => a
             .into_shape_with_order(IxDyn(&[shape[0] / 3, 3]))
             .expect("3V"),
         _ => {

@@ -222,7 +222,7 @@ fn mouth_opens_at_plus_two_sigma() {
     assert!(s2.iter().all(|v| v.is_finite()));
     let (d1, d2) = (dist(&s1, 13, 14), dist(&s2, 13, 14));
     assert!(
-        d2 - d0 >= 10.0 && d2 >= 10.0 && d2 <= 25.0,
+        d2 - d0 >= 10.0 && (10.0..=25.0).contains(&d2),
         "13-14: {d0:.1} mm at the mean, {d2:.1} mm at +2 sigma"
     );
     assert!(d0 < d1 && d1 < d2);

@@ -205,6 +205,17 @@ fn round_trip_f32_and_the_face_model() {
 fn a_v3k_basis_an_npy_sigma_and_units_are_accepted() {
     let d = saved("layouts");
     let m = Morphable::<f64>::load(&d).unwrap();
+    // Fortran-order arrays read as their logical values.
+    let fortran = m
+        .exp_basis()
+        .t()
+        .as_standard_layout()
+        .into_owned()
+        .reversed_axes();
+    assert!(fortran.t().is_standard_layout());
+    write(d.join("exp_basis.npy"), &fortran);
+    let f = Morphable::<f64>::load(&d).unwrap();
+    assert_eq!(f.exp_basis(), m.exp_basis());
     // FLAME-style [V, 3, K] basis, sigma from a file, centimetres.
     let b = m
         .id_basis()

@@ -1,8 +1,8 @@
 //! Forward (and forward + backward) speed of the hard rasterizer on icospheres.
 //!
 //! Scenes: unit icosphere (icosahedron subdivided 4 and 6 times: 5120 and 81920 faces) at distance
-//! 3, fov_y 48.9 degrees, 256x256 and 512x512, f32, K = 1, no culling, on rayon pools of 1 and 2
-//! threads.
+//! 3, fov_y 48.9 degrees, 256x256 and 512x512, f32, K = 1, on rayon pools of 1 and 2 threads,
+//! without and with back-face culling.
 
 use std::collections::HashMap;
 
@@ -93,10 +93,22 @@ fn bench(c: &mut Criterion) {
     for subdiv in [4, 6] {
         let (clip, faces) = scene(subdiv);
         for size in [256, 512] {
-            let s = RasterSettings::new(size, size);
-            for threads in [1, 2] {
-                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-                let id = format!("{}k_faces/{size}px/{threads}thr", faces.len() / 1000);
+            // Default settings (both layers of the sphere rasterized), then back-face culling as
+            // in DEODR's peer setting.
+            for (cull, threads) in [(false, 1), (false, 2), (true, 2)] {
+                let s = RasterSettings {
+                    cull_backfaces: cull,
+                    ..RasterSettings::new(size, size)
+                };
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let id = format!(
+                    "{}k_faces/{size}px/{threads}thr{}",
+                    faces.len() / 1000,
+                    if cull { "/cull" } else { "" }
+                );
                 g.bench_function(BenchmarkId::from_parameter(id), |b| {
                     b.iter(|| pool.install(|| rasterize(&clip, &faces, &s).unwrap()))
                 });
@@ -111,11 +123,16 @@ fn bench(c: &mut Criterion) {
         let fr = rasterize(&clip, &faces, &s).unwrap();
         let gb = vec![[1.0f32, -0.5, 0.25]; fr.len()];
         let gd = vec![1.0f32; fr.len()];
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
         let id = format!("{}k_faces/512px/2thr", faces.len() / 1000);
         g.bench_function(BenchmarkId::from_parameter(id), |b| {
             b.iter(|| {
-                pool.install(|| rasterize_backward(&clip, &faces, &fr, &gb, Some(&gd), Some(&gd), &s).unwrap())
+                pool.install(|| {
+                    rasterize_backward(&clip, &faces, &fr, &gb, Some(&gd), Some(&gd), &s).unwrap()
+                })
             })
         });
     }

@@ -29,24 +29,31 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
             return Err(AutodiffError::shape(
                 "blend_hard",
                 &[col.shape()],
-                format!("fragment colours must be [{}, {c}] (fragments x background channels)", f.face.len()),
+                format!(
+                    "fragment colours must be [{}, {c}] (fragments x background channels)",
+                    f.face.len()
+                ),
             ));
         }
         let cs = col.as_slice().expect("std");
         let mut img = vec![T::zero(); h * w * (c + 1)];
-        img.par_chunks_mut(w * (c + 1)).enumerate().for_each(|(row, out)| {
-            for (x, px) in out.chunks_mut(c + 1).enumerate() {
-                let p = row * w + x;
-                let (s, e) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
-                if s < e {
-                    px[..c].copy_from_slice(&cs[s * c..(s + 1) * c]);
-                    px[c] = T::one();
-                } else {
-                    px[..c].copy_from_slice(&self.background);
+        img.par_chunks_mut(w * (c + 1))
+            .enumerate()
+            .for_each(|(row, out)| {
+                for (x, px) in out.chunks_mut(c + 1).enumerate() {
+                    let p = row * w + x;
+                    let (s, e) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
+                    if s < e {
+                        px[..c].copy_from_slice(&cs[s * c..(s + 1) * c]);
+                        px[c] = T::one();
+                    } else {
+                        px[..c].copy_from_slice(&self.background);
+                    }
                 }
-            }
-        });
-        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c")])
+            });
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c")
+        ])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
@@ -64,7 +71,9 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
                 gc[s * c..(s + 1) * c].copy_from_slice(&gs[p * (c + 1)..p * (c + 1) + c]);
             }
         }
-        Ok(vec![Some(ArrayD::from_shape_vec(IxDyn(&[f.face.len(), c]), gc).expect("n c"))])
+        Ok(vec![Some(
+            ArrayD::from_shape_vec(IxDyn(&[f.face.len(), c]), gc).expect("n c"),
+        )])
     }
 }
 

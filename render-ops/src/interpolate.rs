@@ -9,8 +9,8 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use crate::error::RenderError;
-use crate::rasterize::Rasterized;
 use crate::raster::Fragments;
+use crate::rasterize::Rasterized;
 
 struct InterpolateOp<T: Real> {
     fragments: Arc<Fragments<T>>,
@@ -24,7 +24,10 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
         "interpolate"
     }
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let (attr, bary) = (inputs[0].as_standard_layout(), inputs[1].as_standard_layout());
+        let (attr, bary) = (
+            inputs[0].as_standard_layout(),
+            inputs[1].as_standard_layout(),
+        );
         let n = self.fragments.face.len();
         if attr.ndim() != 2 || bary.shape() != [n, 3] {
             return Err(AutodiffError::shape(
@@ -50,7 +53,9 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
                     }
                 }
             });
-        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[n, c]), out).expect("n x c")])
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[n, c]), out).expect("n x c")
+        ])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let attr = ctx.inputs[0].as_standard_layout();
@@ -98,9 +103,18 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
 }
 
 /// Vertex attributes [V, C] interpolated at every fragment: [N, C].
-pub fn interpolate<'t, T: Real>(attributes: Var<'t, T>, r: &Rasterized<'t, T>) -> Result<Var<'t, T>, RenderError> {
+pub fn interpolate<'t, T: Real>(
+    attributes: Var<'t, T>,
+    r: &Rasterized<'t, T>,
+) -> Result<Var<'t, T>, RenderError> {
     let shape = attributes.shape();
-    let nv = r.faces.iter().flatten().map(|&i| i as usize + 1).max().unwrap_or(0);
+    let nv = r
+        .faces
+        .iter()
+        .flatten()
+        .map(|&i| i as usize + 1)
+        .max()
+        .unwrap_or(0);
     if shape.len() != 2 || shape[0] < nv {
         return Err(AutodiffError::shape(
             "interpolate",

@@ -13,6 +13,7 @@ use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
 use crate::rasterize::rasterize;
 use crate::scene::{Method, Scene, Shading};
+use crate::soft::{softras, SoftSettings};
 use crate::transform::to_clip;
 
 /// The differentiable inputs of a scene render.
@@ -36,7 +37,10 @@ impl<T: Real> Scene<T> {
     /// Raster settings of the scene (size, faces per pixel, culling, interpolation mode).
     pub fn raster_settings(&self) -> RasterSettings {
         let r = &self.desc.raster;
-        let mut s = RasterSettings::new(self.desc.image.width as usize, self.desc.image.height as usize);
+        let mut s = RasterSettings::new(
+            self.desc.image.width as usize,
+            self.desc.image.height as usize,
+        );
         s.faces_per_pixel = r.effective_faces_per_pixel().unwrap_or(1) as usize;
         s.cull_backfaces = r.cull_backfaces;
         s.perspective_correct = r.perspective_correct;
@@ -52,8 +56,11 @@ impl<T: Real> Scene<T> {
     /// has none).
     pub fn vars<'t>(&self, tape: &'t Tape<T>, wrt: Wrt) -> SceneVars<'t, T> {
         let v = self.mesh.positions.len();
-        let pos = ArrayD::from_shape_vec(IxDyn(&[v, 3]), self.mesh.positions.iter().flatten().copied().collect())
-            .expect("v x 3");
+        let pos = ArrayD::from_shape_vec(
+            IxDyn(&[v, 3]),
+            self.mesh.positions.iter().flatten().copied().collect(),
+        )
+        .expect("v x 3");
         let col: Vec<T> = if self.mesh.colors.is_empty() {
             vec![T::one(); 3 * v]
         } else {
@@ -70,9 +77,9 @@ impl<T: Real> Scene<T> {
     /// coverage) as a tape variable.
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
         let method = self.desc.raster.method;
-        if method != Method::Hard {
+        if !matches!(method, Method::Hard | Method::SoftRas) {
             return Err(RenderError::Unsupported(format!(
-                "raster.method '{}' is not available in this build; available: hard",
+                "raster.method '{}' is not available in this build; available: hard, softras",
                 method.name()
             )));
         }
@@ -89,9 +96,28 @@ impl<T: Real> Scene<T> {
         }
         let faces = Arc::new(self.mesh.faces.clone());
         let clip = to_clip(vars.positions, &self.camera.view_proj());
-        let r = rasterize(clip, faces, &self.raster_settings())?;
         let kd = self.desc.material.kd.map(T::from_f64c);
-        let kd = vars.positions.tape().constant(ArrayD::from_shape_vec(IxDyn(&[3]), kd.to_vec()).expect("3"));
+        let kd = vars
+            .positions
+            .tape()
+            .constant(ArrayD::from_shape_vec(IxDyn(&[3]), kd.to_vec()).expect("3"));
+        if method == Method::SoftRas {
+            let r = &self.desc.raster;
+            let proj = self.camera.projection();
+            let (w, h) = (
+                self.desc.image.width as usize,
+                self.desc.image.height as usize,
+            );
+            let mut s = SoftSettings::new(w, h, proj.near(), proj.far());
+            s.sigma = r.sigma;
+            s.gamma = r.gamma;
+            s.eps = r.eps;
+            s.threshold = r.threshold;
+            s.perspective_correct = r.perspective_correct;
+            s.background = self.desc.image.background.to_vec();
+            return softras(clip, vars.colors * kd, faces, &s);
+        }
+        let r = rasterize(clip, faces, &self.raster_settings())?;
         let colors = interpolate(vars.colors * kd, &r)?;
         blend_hard(colors, &r.fragments, &self.background())
     }

@@ -28,7 +28,12 @@ pub struct Rasterized<'t, T: Real> {
 /// Copies a [V, 4] tensor into per-vertex arrays.
 pub fn clip_rows<T: Real>(clip: &Tensor<T>) -> Result<Vec<[T; 4]>, RenderError> {
     if clip.ndim() != 2 || clip.shape()[1] != 4 {
-        return Err(AutodiffError::shape("rasterize", &[clip.shape()], "clip positions must be [V, 4]").into());
+        return Err(AutodiffError::shape(
+            "rasterize",
+            &[clip.shape()],
+            "clip positions must be [V, 4]",
+        )
+        .into());
     }
     Ok(clip
         .outer_iter()
@@ -49,8 +54,9 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
     fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
         let f = &self.fragments;
         let n = f.face.len();
-        let bary = ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.iter().flatten().copied().collect())
-            .expect("n x 3");
+        let bary =
+            ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.iter().flatten().copied().collect())
+                .expect("n x 3");
         let depth = ArrayD::from_shape_vec(IxDyn(&[n]), f.depth.clone()).expect("n");
         let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), f.view_depth.clone()).expect("n");
         Ok(vec![bary, depth, vdepth])
@@ -85,7 +91,8 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
         })?;
         let v = g.len();
         Ok(vec![Some(
-            ArrayD::from_shape_vec(IxDyn(&[v, 4]), g.into_iter().flatten().collect()).expect("v x 4"),
+            ArrayD::from_shape_vec(IxDyn(&[v, 4]), g.into_iter().flatten().collect())
+                .expect("v x 4"),
         )])
     }
 }

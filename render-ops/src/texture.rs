@@ -35,7 +35,9 @@
 
 use std::path::Path;
 
-use autodiff::{tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, Var};
+use autodiff::{
+    tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, Var,
+};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -120,7 +122,12 @@ impl<'t, T: Real> Texture<'t, T> {
     }
 
     /// A texture from a PNG file (values in [0, 1]); `requires_grad` makes it a parameter.
-    pub fn from_png(tape: &'t Tape<T>, path: impl AsRef<Path>, sampler: Sampler, requires_grad: bool) -> Result<Self, IoError> {
+    pub fn from_png(
+        tape: &'t Tape<T>,
+        path: impl AsRef<Path>,
+        sampler: Sampler,
+        requires_grad: bool,
+    ) -> Result<Self, IoError> {
         let texels = load_png(path)?;
         Ok(Texture::new(tape.var(texels, requires_grad), sampler))
     }
@@ -185,7 +192,12 @@ fn upsample_weights(n: usize, m: usize) -> Vec<Vec<(usize, f64)>> {
 }
 
 /// One box-filter step `[h, w, c] -> [h', w', c]` on flat data.
-fn downsample<T: Real>(src: &[T], (h, w): (usize, usize), (h2, w2): (usize, usize), c: usize) -> Vec<T> {
+fn downsample<T: Real>(
+    src: &[T],
+    (h, w): (usize, usize),
+    (h2, w2): (usize, usize),
+    c: usize,
+) -> Vec<T> {
     let wy = downsample_weights(h, h2);
     let wx = downsample_weights(w, w2);
     let mut out = vec![T::zero(); h2 * w2 * c];
@@ -206,7 +218,13 @@ fn downsample<T: Real>(src: &[T], (h, w): (usize, usize), (h2, w2): (usize, usiz
 }
 
 /// The adjoint of [`downsample`]: adds `D^T g` to `dst`.
-fn downsample_adjoint<T: Real>(g: &[T], (h, w): (usize, usize), (h2, w2): (usize, usize), c: usize, dst: &mut [T]) {
+fn downsample_adjoint<T: Real>(
+    g: &[T],
+    (h, w): (usize, usize),
+    (h2, w2): (usize, usize),
+    c: usize,
+    dst: &mut [T],
+) {
     let ty = upsample_weights(h, h2);
     let tx = upsample_weights(w, w2);
     dst.par_chunks_mut(w * c).enumerate().for_each(|(a, row)| {
@@ -231,8 +249,15 @@ pub fn mip_pyramid<T: Real>(texels: &Tensor<T>) -> Vec<Tensor<T>> {
     let sizes = mip_sizes(s[0], s[1]);
     let mut levels = vec![texels.as_standard_layout().into_owned()];
     for k in 1..sizes.len() {
-        let d = downsample(levels[k - 1].as_slice().expect("std"), sizes[k - 1], sizes[k], s[2]);
-        levels.push(ArrayD::from_shape_vec(IxDyn(&[sizes[k].0, sizes[k].1, s[2]]), d).expect("level size"));
+        let d = downsample(
+            levels[k - 1].as_slice().expect("std"),
+            sizes[k - 1],
+            sizes[k],
+            s[2],
+        );
+        levels.push(
+            ArrayD::from_shape_vec(IxDyn(&[sizes[k].0, sizes[k].1, s[2]]), d).expect("level size"),
+        );
     }
     levels
 }
@@ -267,14 +292,22 @@ impl<T: Real> Bilinear<T> {
     fn weights(&self) -> [T; 4] {
         let one = T::one();
         let (fx, fy) = (self.fx, self.fy);
-        [(one - fx) * (one - fy), fx * (one - fy), (one - fx) * fy, fx * fy]
+        [
+            (one - fx) * (one - fy),
+            fx * (one - fy),
+            (one - fx) * fy,
+            fx * fy,
+        ]
     }
 }
 
 #[inline(always)]
 fn nearest_index<T: Real>(u: T, v: T, (h, w): (usize, usize), wrap: Wrap) -> usize {
     let x = (u * T::from_usize_c(w)).floor().to_i64().unwrap_or(0);
-    let y = ((T::one() - v) * T::from_usize_c(h)).floor().to_i64().unwrap_or(0);
+    let y = ((T::one() - v) * T::from_usize_c(h))
+        .floor()
+        .to_i64()
+        .unwrap_or(0);
     wrap.apply(y, h) * w + wrap.apply(x, w)
 }
 
@@ -293,17 +326,29 @@ fn lod<T: Real>(da: [T; 4], (h, w): (usize, usize), levels: usize) -> Lod<T> {
     let rx = ax * ax + ay * ay;
     let ry = bx * bx + by * by;
     let half = T::from_f64c(0.5);
-    let m = if rx == ry { half * (rx + ry) } else { rx.max(ry) };
+    let m = if rx == ry {
+        half * (rx + ry)
+    } else {
+        rx.max(ry)
+    };
     let top = T::from_usize_c(levels - 1);
     let z = T::zero();
     if !(m > z) || levels == 1 {
-        return Lod { l0: 0, f: z, dlam: None };
+        return Lod {
+            l0: 0,
+            f: z,
+            dlam: None,
+        };
     }
     let c = T::from_f64c(0.5 / std::f64::consts::LN_2);
     let lam = m.ln() * c;
     let lc = lam.max(z).min(top);
     let l0 = (lc.floor().to_usize().unwrap_or(0)).min(levels - 1);
-    let f = if l0 == levels - 1 { z } else { lc - T::from_usize_c(l0) };
+    let f = if l0 == levels - 1 {
+        z
+    } else {
+        lc - T::from_usize_c(l0)
+    };
     let dlam = (lam >= z && lam <= top).then(|| {
         // d lambda / d m = c / m; d m / d rx = 1 (rx > ry), 1/2 on ties.
         let (sx, sy) = if rx == ry {
@@ -361,11 +406,19 @@ impl<T: Real> TextureOp<T> {
         let tex = &inputs[0];
         let ts = tex.shape();
         if ts.len() != 3 || ts.iter().any(|&d| d == 0) {
-            return Err(AutodiffError::shape("texture", &[ts], "texels must be [H, W, C] with H, W, C >= 1"));
+            return Err(AutodiffError::shape(
+                "texture",
+                &[ts],
+                "texels must be [H, W, C] with H, W, C >= 1",
+            ));
         }
         let us = inputs[1].shape();
         if us.len() != 2 || us[1] != 2 {
-            return Err(AutodiffError::shape("texture", &[ts, us], "uv must be [N, 2]"));
+            return Err(AutodiffError::shape(
+                "texture",
+                &[ts, us],
+                "uv must be [N, 2]",
+            ));
         }
         if let Some(da) = inputs.get(2) {
             if da.shape() != [us[0], 4] {
@@ -456,7 +509,10 @@ impl<T: Real> TextureOp<T> {
 }
 
 fn std_inputs<T: Real>(inputs: &[&Tensor<T>]) -> Vec<Tensor<T>> {
-    inputs.iter().map(|t| t.as_standard_layout().into_owned()).collect()
+    inputs
+        .iter()
+        .map(|t| t.as_standard_layout().into_owned())
+        .collect()
 }
 
 impl<T: Real> Op<T> for TextureOp<T> {
@@ -492,18 +548,22 @@ impl<T: Real> Op<T> for TextureOp<T> {
         };
         let this = &*self;
         let mut out = vec![T::zero(); v.n * c];
-        out.par_chunks_mut(CHUNK * c).enumerate().for_each(|(blk, o)| {
-            for (r, px) in o.chunks_mut(c).enumerate() {
-                let i = blk * CHUNK + r;
-                this.for_taps(&v, i, |lev, idx, wt| {
-                    let t = &this.level(tex0, lev)[idx * c..(idx + 1) * c];
-                    for ch in 0..c {
-                        px[ch] += wt * t[ch];
-                    }
-                });
-            }
-        });
-        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[v.n, c]), out).expect("n x c")])
+        out.par_chunks_mut(CHUNK * c)
+            .enumerate()
+            .for_each(|(blk, o)| {
+                for (r, px) in o.chunks_mut(c).enumerate() {
+                    let i = blk * CHUNK + r;
+                    this.for_taps(&v, i, |lev, idx, wt| {
+                        let t = &this.level(tex0, lev)[idx * c..(idx + 1) * c];
+                        for ch in 0..c {
+                            px[ch] += wt * t[ch];
+                        }
+                    });
+                }
+            });
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[v.n, c]), out).expect("n x c")
+        ])
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
@@ -521,7 +581,11 @@ impl<T: Real> Op<T> for TextureOp<T> {
         let mut out: Vec<Option<Tensor<T>>> = vec![None; ins.len()];
         if ctx.needs_grad[0] {
             // Sequential scatter in fragment order: deterministic, no atomics.
-            let mut levels: Vec<Vec<T>> = self.sizes.iter().map(|&(h, w)| vec![T::zero(); h * w * c]).collect();
+            let mut levels: Vec<Vec<T>> = self
+                .sizes
+                .iter()
+                .map(|&(h, w)| vec![T::zero(); h * w * c])
+                .collect();
             for i in 0..v.n {
                 let gi = &g[i * c..(i + 1) * c];
                 self.for_taps(&v, i, |lev, idx, wt| {
@@ -547,51 +611,66 @@ impl<T: Real> Op<T> for TextureOp<T> {
             // Per fragment: [g_u, g_v, g_da (4)].
             let mut rows = vec![T::zero(); v.n * 6];
             if self.sampler.filter != Filter::Nearest {
-                rows.par_chunks_mut(CHUNK * 6).enumerate().for_each(|(blk, o)| {
-                    let mut l0g = LevelGrad::new(c);
-                    let mut l1g = LevelGrad::new(c);
-                    for (r, row) in o.chunks_mut(6).enumerate() {
-                        let i = blk * CHUNK + r;
-                        let gi = &g[i * c..(i + 1) * c];
-                        let (u, vv) = (v.uv[2 * i], v.uv[2 * i + 1]);
-                        let l = self.lod_of(&v, i);
-                        let has1 = l.l0 + 1 < self.sizes.len() && self.sampler.filter == Filter::Trilinear;
-                        self.bilinear_grad(self.level(tex0, l.l0), l.l0, u, vv, &mut l0g);
-                        if has1 {
-                            self.bilinear_grad(self.level(tex0, l.l0 + 1), l.l0 + 1, u, vv, &mut l1g);
-                        }
-                        let (w0, w1) = (T::one() - l.f, l.f);
-                        let (mut gu, mut gv, mut glam) = (T::zero(), T::zero(), T::zero());
-                        for ch in 0..c {
-                            let (a, b) = if has1 {
-                                (w0 * l0g.du[ch] + w1 * l1g.du[ch], w0 * l0g.dv[ch] + w1 * l1g.dv[ch])
-                            } else {
-                                (l0g.du[ch], l0g.dv[ch])
-                            };
-                            gu += gi[ch] * a;
-                            gv += gi[ch] * b;
+                rows.par_chunks_mut(CHUNK * 6)
+                    .enumerate()
+                    .for_each(|(blk, o)| {
+                        let mut l0g = LevelGrad::new(c);
+                        let mut l1g = LevelGrad::new(c);
+                        for (r, row) in o.chunks_mut(6).enumerate() {
+                            let i = blk * CHUNK + r;
+                            let gi = &g[i * c..(i + 1) * c];
+                            let (u, vv) = (v.uv[2 * i], v.uv[2 * i + 1]);
+                            let l = self.lod_of(&v, i);
+                            let has1 = l.l0 + 1 < self.sizes.len()
+                                && self.sampler.filter == Filter::Trilinear;
+                            self.bilinear_grad(self.level(tex0, l.l0), l.l0, u, vv, &mut l0g);
                             if has1 {
-                                glam += gi[ch] * (l1g.val[ch] - l0g.val[ch]);
+                                self.bilinear_grad(
+                                    self.level(tex0, l.l0 + 1),
+                                    l.l0 + 1,
+                                    u,
+                                    vv,
+                                    &mut l1g,
+                                );
                             }
-                        }
-                        row[0] = gu;
-                        row[1] = gv;
-                        if let Some(d) = l.dlam {
-                            if has1 {
-                                for k in 0..4 {
-                                    row[2 + k] = glam * d[k];
+                            let (w0, w1) = (T::one() - l.f, l.f);
+                            let (mut gu, mut gv, mut glam) = (T::zero(), T::zero(), T::zero());
+                            for ch in 0..c {
+                                let (a, b) = if has1 {
+                                    (
+                                        w0 * l0g.du[ch] + w1 * l1g.du[ch],
+                                        w0 * l0g.dv[ch] + w1 * l1g.dv[ch],
+                                    )
+                                } else {
+                                    (l0g.du[ch], l0g.dv[ch])
+                                };
+                                gu += gi[ch] * a;
+                                gv += gi[ch] * b;
+                                if has1 {
+                                    glam += gi[ch] * (l1g.val[ch] - l0g.val[ch]);
+                                }
+                            }
+                            row[0] = gu;
+                            row[1] = gv;
+                            if let Some(d) = l.dlam {
+                                if has1 {
+                                    for k in 0..4 {
+                                        row[2 + k] = glam * d[k];
+                                    }
                                 }
                             }
                         }
-                    }
-                });
+                    });
             }
             if need_uv {
                 let guv: Vec<T> = rows.chunks(6).flat_map(|r| [r[0], r[1]]).collect();
                 out[1] = Some(ArrayD::from_shape_vec(IxDyn(&[v.n, 2]), guv).expect("n x 2"));
             }
             if need_da {
-                let gda: Vec<T> = rows.chunks(6).flat_map(|r| [r[2], r[3], r[4], r[5]]).collect();
+                let gda: Vec<T> = rows
+                    .chunks(6)
+                    .flat_map(|r| [r[2], r[3], r[4], r[5]])
+                    .collect();
                 out[2] = Some(ArrayD::from_shape_vec(IxDyn(&[v.n, 4]), gda).expect("n x 4"));
             }
         }
@@ -602,14 +681,21 @@ impl<T: Real> Op<T> for TextureOp<T> {
 /// Samples texels `[H, W, C]` at `uv` `[N, 2]`: `[N, C]` (fused op with a hand-written
 /// backward; see the module docs). `uv_da` `[N, 4]` (du/dx, dv/dx, du/dy, dv/dy per pixel)
 /// selects the trilinear mip level; other filters ignore it (but accept it).
-pub fn sample<'t, T: Real>(texels: Var<'t, T>, uv: Var<'t, T>, uv_da: Option<Var<'t, T>>, sampler: Sampler) -> Var<'t, T> {
+pub fn sample<'t, T: Real>(
+    texels: Var<'t, T>,
+    uv: Var<'t, T>,
+    uv_da: Option<Var<'t, T>>,
+    sampler: Sampler,
+) -> Var<'t, T> {
     let op = TextureOp {
         sampler,
         pyramid: Vec::new(),
         sizes: Vec::new(),
     };
     match uv_da {
-        Some(da) if sampler.filter == Filter::Trilinear => texels.tape().apply(op, &[texels, uv, da]),
+        Some(da) if sampler.filter == Filter::Trilinear => {
+            texels.tape().apply(op, &[texels, uv, da])
+        }
         _ => texels.tape().apply(op, &[texels, uv]),
     }
 }
@@ -630,14 +716,24 @@ pub fn downsample_composed<'t, T: Real>(level: Var<'t, T>) -> Var<'t, T> {
         t.constant(a)
     };
     // Rows: [h2, h] @ [h, w c] -> [h2, w, c]; then columns: [w2, w] @ [w, h2 c].
-    let a = matrix(h, h2).matmul(level.reshape(&[h, w * c])).reshape(&[h2, w, c]);
+    let a = matrix(h, h2)
+        .matmul(level.reshape(&[h, w * c]))
+        .reshape(&[h2, w, c]);
     let b = a.permute(&[1, 0, 2]).reshape(&[w, h2 * c]);
-    matrix(w, w2).matmul(b).reshape(&[w2, h2, c]).permute(&[1, 0, 2])
+    matrix(w, w2)
+        .matmul(b)
+        .reshape(&[w2, h2, c])
+        .permute(&[1, 0, 2])
 }
 
 /// Bilinear (or nearest) sampling of one level, composed: indices from the values (data),
 /// weights from `uv` through tape ops.
-fn sample_level_composed<'t, T: Real>(level: Var<'t, T>, uv: Var<'t, T>, filter: Filter, wrap: Wrap) -> Var<'t, T> {
+fn sample_level_composed<'t, T: Real>(
+    level: Var<'t, T>,
+    uv: Var<'t, T>,
+    filter: Filter,
+    wrap: Wrap,
+) -> Var<'t, T> {
     let s = level.shape();
     let (h, w, c) = (s[0], s[1], s[2]);
     let flat = level.reshape(&[h * w, c]);
@@ -649,10 +745,14 @@ fn sample_level_composed<'t, T: Real>(level: Var<'t, T>, uv: Var<'t, T>, filter:
     let us: Vec<T> = (0..n).map(|i| uvv[[i, 0]]).collect();
     let vs: Vec<T> = (0..n).map(|i| uvv[[i, 1]]).collect();
     if filter == Filter::Nearest {
-        let idx: Vec<usize> = (0..n).map(|i| nearest_index(us[i], vs[i], (h, w), wrap)).collect();
+        let idx: Vec<usize> = (0..n)
+            .map(|i| nearest_index(us[i], vs[i], (h, w), wrap))
+            .collect();
         return flat.index_select(0, &idx);
     }
-    let taps: Vec<Bilinear<T>> = (0..n).map(|i| Bilinear::new(us[i], vs[i], (h, w), wrap)).collect();
+    let taps: Vec<Bilinear<T>> = (0..n)
+        .map(|i| Bilinear::new(us[i], vs[i], (h, w), wrap))
+        .collect();
     let t = uv.tape();
     let column = |f: &dyn Fn(usize) -> T| {
         t.constant(ArrayD::from_shape_vec(IxDyn(&[n, 1]), (0..n).map(f).collect()).expect("n x 1"))
@@ -682,7 +782,12 @@ fn sample_level_composed<'t, T: Real>(level: Var<'t, T>, uv: Var<'t, T>, filter:
 
 /// [`sample`] composed from tape ops (the reference): the pyramid by matrix products, taps by
 /// `index_select`, weights and the level of detail by elementwise ops.
-pub fn sample_composed<'t, T: Real>(texels: Var<'t, T>, uv: Var<'t, T>, uv_da: Option<Var<'t, T>>, sampler: Sampler) -> Var<'t, T> {
+pub fn sample_composed<'t, T: Real>(
+    texels: Var<'t, T>,
+    uv: Var<'t, T>,
+    uv_da: Option<Var<'t, T>>,
+    sampler: Sampler,
+) -> Var<'t, T> {
     let s = texels.shape();
     if s.len() != 3 {
         // Let the fused op report the bad shape.
@@ -717,14 +822,26 @@ pub fn sample_composed<'t, T: Real>(texels: Var<'t, T>, uv: Var<'t, T>, uv_da: O
         Ok(v) => v,
         Err(_) => return lam,
     };
-    let l0: Vec<usize> = lv.iter().map(|&x| x.floor().to_usize().unwrap_or(0).min(nl - 1)).collect();
+    let l0: Vec<usize> = lv
+        .iter()
+        .map(|&x| x.floor().to_usize().unwrap_or(0).min(nl - 1))
+        .collect();
     let n = l0.len();
-    let f = lam - t.constant(ArrayD::from_shape_vec(IxDyn(&[n, 1]), l0.iter().map(|&l| T::from_usize_c(l)).collect()).expect("n x 1"));
+    let f = lam
+        - t.constant(
+            ArrayD::from_shape_vec(
+                IxDyn(&[n, 1]),
+                l0.iter().map(|&l| T::from_usize_c(l)).collect(),
+            )
+            .expect("n x 1"),
+        );
     let zero = t.constant(tensor::scalar(T::zero()));
     let mut out: Option<Var<'t, T>> = None;
     for (k, &level) in levels.iter().enumerate() {
-        let is0 = ArrayD::from_shape_vec(IxDyn(&[n, 1]), l0.iter().map(|&l| l == k).collect()).expect("n x 1");
-        let is1 = ArrayD::from_shape_vec(IxDyn(&[n, 1]), l0.iter().map(|&l| l + 1 == k).collect()).expect("n x 1");
+        let is0 = ArrayD::from_shape_vec(IxDyn(&[n, 1]), l0.iter().map(|&l| l == k).collect())
+            .expect("n x 1");
+        let is1 = ArrayD::from_shape_vec(IxDyn(&[n, 1]), l0.iter().map(|&l| l + 1 == k).collect())
+            .expect("n x 1");
         if !is0.iter().chain(is1.iter()).any(|&b| b) {
             continue;
         }
@@ -744,11 +861,27 @@ mod tests {
 
     #[test]
     fn wrap_modes() {
-        assert_eq!((-1..7).map(|i| Wrap::Repeat.apply(i, 3)).collect::<Vec<_>>(), [2, 0, 1, 2, 0, 1, 2, 0]);
-        assert_eq!((-1..7).map(|i| Wrap::Clamp.apply(i, 3)).collect::<Vec<_>>(), [0, 0, 1, 2, 2, 2, 2, 2]);
-        assert_eq!((-1..7).map(|i| Wrap::Mirror.apply(i, 3)).collect::<Vec<_>>(), [0, 0, 1, 2, 2, 1, 0, 0]);
+        assert_eq!(
+            (-1..7)
+                .map(|i| Wrap::Repeat.apply(i, 3))
+                .collect::<Vec<_>>(),
+            [2, 0, 1, 2, 0, 1, 2, 0]
+        );
+        assert_eq!(
+            (-1..7).map(|i| Wrap::Clamp.apply(i, 3)).collect::<Vec<_>>(),
+            [0, 0, 1, 2, 2, 2, 2, 2]
+        );
+        assert_eq!(
+            (-1..7)
+                .map(|i| Wrap::Mirror.apply(i, 3))
+                .collect::<Vec<_>>(),
+            [0, 0, 1, 2, 2, 1, 0, 0]
+        );
         assert_eq!(Wrap::Mirror.apply(-4, 3), 2);
-        assert_eq!(Wrap::Repeat.apply(i64::MIN, 5), i64::MIN.rem_euclid(5) as usize);
+        assert_eq!(
+            Wrap::Repeat.apply(i64::MIN, 5),
+            i64::MIN.rem_euclid(5) as usize
+        );
     }
 
     #[test]
@@ -758,7 +891,13 @@ mod tests {
         let w = downsample_weights(4, 2);
         assert_eq!(w, vec![vec![(0, 0.5), (1, 0.5)], vec![(2, 0.5), (3, 0.5)]]);
         let w = downsample_weights(5, 2);
-        assert_eq!(w, vec![vec![(0, 0.4), (1, 0.4), (2, 0.2)], vec![(2, 0.2), (3, 0.4), (4, 0.4)]]);
+        assert_eq!(
+            w,
+            vec![
+                vec![(0, 0.4), (1, 0.4), (2, 0.2)],
+                vec![(2, 0.2), (3, 0.4), (4, 0.4)]
+            ]
+        );
         for (n, m) in [(7, 3), (3, 1), (1, 1), (9, 4)] {
             for taps in downsample_weights(n, m) {
                 assert!((taps.iter().map(|t| t.1).sum::<f64>() - 1.0).abs() < 1e-15);
@@ -768,13 +907,20 @@ mod tests {
 
     #[test]
     fn pyramid_preserves_the_mean() {
-        let tex = ArrayD::from_shape_fn(IxDyn(&[6, 10, 2]), |i| (i[0] * 10 + i[1]) as f64 + i[2] as f64 * 0.5);
+        let tex = ArrayD::from_shape_fn(IxDyn(&[6, 10, 2]), |i| {
+            (i[0] * 10 + i[1]) as f64 + i[2] as f64 * 0.5
+        });
         let p = mip_pyramid(&tex);
         assert_eq!(p.len(), 4);
         let m0 = tex.mean().unwrap();
         // Each level is the area average of the one above: means agree.
         for l in &p {
-            assert!((l.mean().unwrap() - m0).abs() < 1e-12, "{} {}", l.mean().unwrap(), m0);
+            assert!(
+                (l.mean().unwrap() - m0).abs() < 1e-12,
+                "{} {}",
+                l.mean().unwrap(),
+                m0
+            );
         }
     }
 

@@ -27,7 +27,12 @@ fn rodrigues_coeffs(theta2: f64) -> (f64, f64, f64, f64) {
         let (s, c) = t.sin_cos();
         let a = s / t;
         let b = (1.0 - c) / theta2;
-        (a, b, (t * c - s) / (theta2 * t), (t * s - 2.0 * (1.0 - c)) / (theta2 * theta2))
+        (
+            a,
+            b,
+            (t * c - s) / (theta2 * t),
+            (t * s - 2.0 * (1.0 - c)) / (theta2 * theta2),
+        )
     }
 }
 
@@ -55,7 +60,11 @@ impl<T: Real> Op<T> for AxisAngleOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let r = inputs[0];
         if r.shape() != [3] {
-            return Err(AutodiffError::shape("axis_angle_to_matrix", &[r.shape()], "expected [3]"));
+            return Err(AutodiffError::shape(
+                "axis_angle_to_matrix",
+                &[r.shape()],
+                "expected [3]",
+            ));
         }
         let rv = [r[0].to_f64c(), r[1].to_f64c(), r[2].to_f64c()];
         let t2 = rv.iter().map(|v| v * v).sum::<f64>();
@@ -90,13 +99,18 @@ impl<T: Real> Op<T> for AxisAngleOp {
             let mut s = 0.0;
             for p in 0..3 {
                 for q in 0..3 {
-                    let d = a1 * rv[i] * k[p][q] + a * ei[p][q] + b1 * rv[i] * k2[p][q] + b * (ek[p][q] + ke[p][q]);
+                    let d = a1 * rv[i] * k[p][q]
+                        + a * ei[p][q]
+                        + b1 * rv[i] * k2[p][q]
+                        + b * (ek[p][q] + ke[p][q]);
                     s += d * g[[p, q]].to_f64c();
                 }
             }
             *o = s;
         }
-        Ok(vec![Some(ArrayD::from_shape_fn(IxDyn(&[3]), |ix| T::from_f64c(out[ix[0]])))])
+        Ok(vec![Some(ArrayD::from_shape_fn(IxDyn(&[3]), |ix| {
+            T::from_f64c(out[ix[0]])
+        }))])
     }
 }
 
@@ -111,14 +125,31 @@ pub fn axis_angle_to_matrix<'t, T: Real>(r: Var<'t, T>) -> Var<'t, T> {
 pub fn quaternion_to_matrix<'t, T: Real>(q: Var<'t, T>) -> Var<'t, T> {
     let t = q.tape();
     let q = q.normalize(T::from_f64c(1e-12));
-    let (w, x, y, z) = (q.slice(0, 0, 1), q.slice(0, 1, 2), q.slice(0, 2, 3), q.slice(0, 3, 4));
+    let (w, x, y, z) = (
+        q.slice(0, 0, 1),
+        q.slice(0, 1, 2),
+        q.slice(0, 2, 3),
+        q.slice(0, 3, 4),
+    );
     let one = T::one();
     let two = one + one;
     let m2 = -two;
     let rows = [
-        [(y * y + z * z) * m2 + one, (x * y - w * z) * two, (x * z + w * y) * two],
-        [(x * y + w * z) * two, (x * x + z * z) * m2 + one, (y * z - w * x) * two],
-        [(x * z - w * y) * two, (y * z + w * x) * two, (x * x + y * y) * m2 + one],
+        [
+            (y * y + z * z) * m2 + one,
+            (x * y - w * z) * two,
+            (x * z + w * y) * two,
+        ],
+        [
+            (x * y + w * z) * two,
+            (x * x + z * z) * m2 + one,
+            (y * z - w * x) * two,
+        ],
+        [
+            (x * z - w * y) * two,
+            (y * z + w * x) * two,
+            (x * x + y * y) * m2 + one,
+        ],
     ];
     let flat: Vec<Var<'t, T>> = rows.iter().flatten().copied().collect();
     t.concat(&flat, 0).reshape(&[3, 3])
@@ -146,7 +177,11 @@ pub fn euler_xyz_to_matrix<'t, T: Real>(angles: Var<'t, T>) -> Var<'t, T> {
 }
 
 /// `R p + t` for points [N, 3], rotation [3, 3] and translation [3].
-pub fn rigid_transform<'t, T: Real>(points: Var<'t, T>, rot: Var<'t, T>, trans: Var<'t, T>) -> Var<'t, T> {
+pub fn rigid_transform<'t, T: Real>(
+    points: Var<'t, T>,
+    rot: Var<'t, T>,
+    trans: Var<'t, T>,
+) -> Var<'t, T> {
     points.matmul(rot.t()) + trans
 }
 
@@ -212,11 +247,19 @@ mod tests {
         // The same rotation as a quaternion.
         let th = (0.09f64 + 0.04 + 0.25).sqrt();
         let (s, c) = (th / 2.0).sin_cos();
-        let q = tape.leaf(ArrayD::from_shape_vec(IxDyn(&[4]), vec![c, s * 0.3 / th, s * -0.2 / th, s * 0.5 / th]).unwrap());
+        let q = tape.leaf(
+            ArrayD::from_shape_vec(
+                IxDyn(&[4]),
+                vec![c, s * 0.3 / th, s * -0.2 / th, s * 0.5 / th],
+            )
+            .unwrap(),
+        );
         let mq = quaternion_to_matrix(q).value().unwrap();
         let d = (&*m - &*mq).iter().fold(0.0f64, |a, v| a.max(v.abs()));
         assert!(d < 1e-14, "{d}");
-        let e = euler_xyz_to_matrix(tape.leaf(ArrayD::from_shape_vec(IxDyn(&[3]), vec![0.1, 0.2, 0.3]).unwrap()));
+        let e = euler_xyz_to_matrix(
+            tape.leaf(ArrayD::from_shape_vec(IxDyn(&[3]), vec![0.1, 0.2, 0.3]).unwrap()),
+        );
         assert!(orthonormal(&e.value().unwrap()) < 1e-14);
     }
 
@@ -225,7 +268,12 @@ mod tests {
         let opts = GradcheckOptions::default();
         let mut rng = Rng::new(7);
         let w: Tensor<f64> = rng.normal_tensor(&[3, 3]);
-        for r in [vec![0.0, 0.0, 0.0], vec![1e-5, -2e-5, 3e-6], vec![0.3, -1.2, 0.7], vec![2.0, 1.0, -2.5]] {
+        for r in [
+            vec![0.0, 0.0, 0.0],
+            vec![1e-5, -2e-5, 3e-6],
+            vec![0.3, -1.2, 0.7],
+            vec![2.0, 1.0, -2.5],
+        ] {
             let x = ArrayD::from_shape_vec(IxDyn(&[3]), r).unwrap();
             let w = w.clone();
             let rep = gradcheck(
@@ -238,10 +286,20 @@ mod tests {
         }
         let q = ArrayD::from_shape_vec(IxDyn(&[4]), vec![0.9, 0.1, -0.3, 0.2]).unwrap();
         let w2 = w.clone();
-        let rep = gradcheck(move |t: &Tape<f64>, v| (quaternion_to_matrix(v[0]) * t.constant(w2.clone())).sum(), &[q], &opts).unwrap();
+        let rep = gradcheck(
+            move |t: &Tape<f64>, v| (quaternion_to_matrix(v[0]) * t.constant(w2.clone())).sum(),
+            &[q],
+            &opts,
+        )
+        .unwrap();
         assert!(rep.passed(), "{rep}");
         let e = ArrayD::from_shape_vec(IxDyn(&[3]), vec![0.4, -0.3, 1.1]).unwrap();
-        let rep = gradcheck(move |t: &Tape<f64>, v| (euler_xyz_to_matrix(v[0]) * t.constant(w.clone())).sum(), &[e], &opts).unwrap();
+        let rep = gradcheck(
+            move |t: &Tape<f64>, v| (euler_xyz_to_matrix(v[0]) * t.constant(w.clone())).sum(),
+            &[e],
+            &opts,
+        )
+        .unwrap();
         assert!(rep.passed(), "{rep}");
     }
 
@@ -249,7 +307,8 @@ mod tests {
     fn projection_gradients_check() {
         let mut rng = Rng::new(3);
         let mut p: Tensor<f64> = rng.uniform_tensor(&[5, 3], -1.0, 1.0);
-        p.index_axis_mut(ndarray::Axis(1), 2).mapv_inplace(|z| z - 4.0);
+        p.index_axis_mut(ndarray::Axis(1), 2)
+            .mapv_inplace(|z| z - 4.0);
         let f = ArrayD::from_elem(IxDyn(&[1]), 1.7);
         let rep = gradcheck(
             |_t: &Tape<f64>, v| {

@@ -7,16 +7,17 @@ use autodiff::gradcheck::{gradcheck, GradcheckOptions, GradcheckReport};
 use autodiff::rng::Rng;
 use autodiff::{Tape, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
-use render_ops::shade::{
-    face_normals, face_normals_composed, sh_shade, sh_shade_composed, shade, shade_composed, vertex_normals,
-    vertex_normals_composed, AmbientLight, DirectionalLight, Lights, Material, PointLight, Reflectance, Surface,
-};
 use render_ops::camera::Camera;
 use render_ops::raster::RasterSettings;
 use render_ops::rasterize::{rasterize, Rasterized};
 use render_ops::shade::{
-    depth_map, ncc, normal_map, pncc, render_shader, run_shader, uv_derivatives, FragmentInputs, MeshAttributes,
-    ShLight,
+    depth_map, ncc, normal_map, pncc, render_shader, run_shader, uv_derivatives, FragmentInputs,
+    MeshAttributes, ShLight,
+};
+use render_ops::shade::{
+    face_normals, face_normals_composed, sh_shade, sh_shade_composed, shade, shade_composed,
+    vertex_normals, vertex_normals_composed, AmbientLight, DirectionalLight, Lights, Material,
+    PointLight, Reflectance, Surface,
 };
 use render_ops::texture::{sample, sample_composed, Filter, Sampler, Texture, Wrap};
 use render_ops::transform::to_clip;
@@ -38,7 +39,9 @@ fn check(name: &str, rep: GradcheckReport) {
 
 fn max_diff(a: &Tensor<f64>, b: &Tensor<f64>) -> f64 {
     assert_eq!(a.shape(), b.shape());
-    a.iter().zip(b.iter()).fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
+    a.iter()
+        .zip(b.iter())
+        .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
 }
 
 /// Fused and composed agree in value and in the gradient of a random projection of the
@@ -62,8 +65,14 @@ fn agree(name: &str, fused: Build, composed: Build, inputs: &[Tensor<f64>], tol:
     for (k, (a, b)) in ga.iter().zip(&gb).enumerate() {
         let d = max_diff(a, b);
         let scale = b.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-        assert!(d <= tol * scale, "{name}: gradient of input {k} differs by {d:e} (scale {scale:e})");
-        assert!(a.iter().all(|v| v.is_finite()), "{name}: non-finite gradient of input {k}");
+        assert!(
+            d <= tol * scale,
+            "{name}: gradient of input {k} differs by {d:e} (scale {scale:e})"
+        );
+        assert!(
+            a.iter().all(|v| v.is_finite()),
+            "{name}: non-finite gradient of input {k}"
+        );
     }
 }
 
@@ -81,7 +90,11 @@ fn mesh_inputs() -> (Tensor<f64>, Arc<Vec<[u32; 3]>>) {
         [0.0, 0.0, -1.0],
         [3.0, 3.0, 3.0],
     ];
-    let p: Vec<f64> = base.iter().flatten().map(|&x| x + rng.uniform(-0.2, 0.2)).collect();
+    let p: Vec<f64> = base
+        .iter()
+        .flatten()
+        .map(|&x| x + rng.uniform(-0.2, 0.2))
+        .collect();
     let faces = vec![
         [0, 2, 4],
         [2, 1, 4],
@@ -107,13 +120,43 @@ fn faces() -> Arc<Vec<[u32; 3]>> {
 fn normals_gradcheck_and_agree() {
     let (p, _) = mesh_inputs();
     let opts = GradcheckOptions::default();
-    check("face_normals", gradcheck(|_t: &Tape<f64>, v| face_normals(v[0], &faces()), &[p.clone()], &opts).unwrap());
-    check("vertex_normals", gradcheck(|_t: &Tape<f64>, v| vertex_normals(v[0], &faces()), &[p.clone()], &opts).unwrap());
-    agree("face_normals", |_t, v| face_normals(v[0], &faces()), |_t, v| face_normals_composed(v[0], &faces()), &[p.clone()], 1e-10);
-    agree("vertex_normals", |_t, v| vertex_normals(v[0], &faces()), |_t, v| vertex_normals_composed(v[0], &faces()), &[p.clone()], 1e-10);
+    check(
+        "face_normals",
+        gradcheck(
+            |_t: &Tape<f64>, v| face_normals(v[0], &faces()),
+            &[p.clone()],
+            &opts,
+        )
+        .unwrap(),
+    );
+    check(
+        "vertex_normals",
+        gradcheck(
+            |_t: &Tape<f64>, v| vertex_normals(v[0], &faces()),
+            &[p.clone()],
+            &opts,
+        )
+        .unwrap(),
+    );
+    agree(
+        "face_normals",
+        |_t, v| face_normals(v[0], &faces()),
+        |_t, v| face_normals_composed(v[0], &faces()),
+        &[p.clone()],
+        1e-10,
+    );
+    agree(
+        "vertex_normals",
+        |_t, v| vertex_normals(v[0], &faces()),
+        |_t, v| vertex_normals_composed(v[0], &faces()),
+        &[p.clone()],
+        1e-10,
+    );
     // Outward, unit, and the isolated vertex is (0, 0, 0).
     let tape = Tape::<f64>::new();
-    let n = vertex_normals(tape.constant(p.clone()), &faces()).value().unwrap();
+    let n = vertex_normals(tape.constant(p.clone()), &faces())
+        .value()
+        .unwrap();
     for v in 0..6 {
         let row: Vec<f64> = (0..3).map(|k| n[[v, k]]).collect();
         let len = row.iter().map(|x| x * x).sum::<f64>().sqrt();
@@ -127,7 +170,10 @@ fn normals_gradcheck_and_agree() {
 #[test]
 fn zero_length_normals_are_safe() {
     // A degenerate face (collinear points) and a repeated vertex.
-    let p = t(&[4, 3], vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+    let p = t(
+        &[4, 3],
+        vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    );
     let faces = Arc::new(vec![[0u32, 1, 2], [0, 3, 1]]);
     let tape = Tape::<f64>::new();
     let pv = tape.leaf(p);
@@ -135,7 +181,10 @@ fn zero_length_normals_are_safe() {
     let vnrm = vertex_normals(pv, &faces);
     for v in [fnrm, vnrm] {
         let val = v.value().unwrap();
-        assert!(val.iter().all(|&x| x == 0.0), "degenerate normals must be zero: {val:?}");
+        assert!(
+            val.iter().all(|&x| x == 0.0),
+            "degenerate normals must be zero: {val:?}"
+        );
     }
     let loss = (fnrm.sum() + vnrm.sum()) * 1.0;
     let g = tape.backward(loss).unwrap().wrt(pv);
@@ -148,8 +197,16 @@ fn zero_length_normals_are_safe() {
     let albedo = tape.leaf(ArrayD::from_elem(IxDyn(&[n, 3]), 0.5));
     let eye = tape.leaf(t(&[3], vec![0.0, 0.0, 4.0]));
     let lights = Lights::new()
-        .with_directional(DirectionalLight::constant(&tape, [0.0, 0.0, -1.0], [1.0, 1.0, 1.0]))
-        .with_point(PointLight::constant(&tape, [1.0, 2.0, 3.0], [1.0, 0.5, 0.2]))
+        .with_directional(DirectionalLight::constant(
+            &tape,
+            [0.0, 0.0, -1.0],
+            [1.0, 1.0, 1.0],
+        ))
+        .with_point(PointLight::constant(
+            &tape,
+            [1.0, 2.0, 3.0],
+            [1.0, 0.5, 0.2],
+        ))
         .with_ambient(AmbientLight::constant(&tape, [0.1, 0.1, 0.1]));
     let surf = Surface {
         position: pos,
@@ -158,9 +215,15 @@ fn zero_length_normals_are_safe() {
     };
     let coeffs = tape.leaf(Rng::new(2).normal_tensor(&[9, 3]));
     let mut total = sh_shade(normal, albedo, coeffs).sum();
-    for model in [Reflectance::Lambert, Reflectance::Phong, Reflectance::BlinnPhong] {
+    for model in [
+        Reflectance::Lambert,
+        Reflectance::Phong,
+        Reflectance::BlinnPhong,
+    ] {
         let m = Material::constant(&tape, model, [0.3; 3], 20.0);
-        total = total + shade(&surf, &m, &lights, eye).sum() + shade_composed(&surf, &m, &lights, eye).sum();
+        total = total
+            + shade(&surf, &m, &lights, eye).sum()
+            + shade_composed(&surf, &m, &lights, eye).sum();
     }
     let val = total.item().unwrap();
     assert!(val.is_finite());
@@ -188,7 +251,11 @@ fn phong_inputs() -> Vec<Tensor<f64>> {
     let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     let (mut pos, mut nrm) = (Vec::new(), Vec::new());
     while pos.len() < 3 * NF {
-        let x = [rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)];
+        let x = [
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-1.0, 1.0),
+        ];
         let nr = [rng.normal(), rng.normal(), rng.normal() + 1.0];
         let n = unit(nr);
         let v = unit([eye[0] - x[0], eye[1] - x[1], eye[2] - x[2]]);
@@ -196,7 +263,11 @@ fn phong_inputs() -> Vec<Tensor<f64>> {
         ls.push(unit([q[0] - x[0], q[1] - x[1], q[2] - x[2]]));
         let ok = ls.iter().all(|&l| {
             let ndl = dot(n, l);
-            let r = [2.0 * ndl * n[0] - l[0], 2.0 * ndl * n[1] - l[1], 2.0 * ndl * n[2] - l[2]];
+            let r = [
+                2.0 * ndl * n[0] - l[0],
+                2.0 * ndl * n[1] - l[1],
+                2.0 * ndl * n[2] - l[2],
+            ];
             let h = unit([l[0] + v[0], l[1] + v[1], l[2] + v[2]]);
             ndl.abs() > 0.05 && (ndl < 0.0 || (dot(r, v).abs() > 0.05 && dot(n, h).abs() > 0.05))
         });
@@ -211,11 +282,11 @@ fn phong_inputs() -> Vec<Tensor<f64>> {
         t(&[NF, 3], pos),
         t(&[NF, 3], nrm),
         albedo,
-        t(&[3], vec![0.3, 0.2, 0.25]),          // ka
-        t(&[3], vec![0.5, 0.4, 0.3]),           // ks
-        t(&[], vec![6.0]),                      // shininess
-        t(&[3], eye.to_vec()),                  // eye
-        t(&[3], vec![0.1, 0.15, 0.2]),          // ambient
+        t(&[3], vec![0.3, 0.2, 0.25]), // ka
+        t(&[3], vec![0.5, 0.4, 0.3]),  // ks
+        t(&[], vec![6.0]),             // shininess
+        t(&[3], eye.to_vec()),         // eye
+        t(&[3], vec![0.1, 0.15, 0.2]), // ambient
         t(&[3], dirs[0].to_vec()),
         t(&[3], vec![0.9, 0.8, 0.7]),
         t(&[3], dirs[1].to_vec()),
@@ -226,7 +297,12 @@ fn phong_inputs() -> Vec<Tensor<f64>> {
 }
 
 /// The reflection model on `phong_inputs` (ka from the inputs when `own_ka`).
-fn phong_with<'t>(model: Reflectance, fused: bool, own_ka: bool, v: &[Var<'t, f64>]) -> Var<'t, f64> {
+fn phong_with<'t>(
+    model: Reflectance,
+    fused: bool,
+    own_ka: bool,
+    v: &[Var<'t, f64>],
+) -> Var<'t, f64> {
     let surf = Surface {
         position: v[0],
         normal: v[1],
@@ -264,10 +340,18 @@ fn reflection_models_gradcheck() {
     let inputs = phong_inputs();
     let opts = GradcheckOptions::default();
     let cases: [(&str, Build); 4] = [
-        ("lambert", |_t, v| phong_with(Reflectance::Lambert, true, true, v)),
-        ("phong", |_t, v| phong_with(Reflectance::Phong, true, true, v)),
-        ("blinn_phong", |_t, v| phong_with(Reflectance::BlinnPhong, true, true, v)),
-        ("blinn_phong/ka=albedo", |_t, v| phong_with(Reflectance::BlinnPhong, true, false, v)),
+        ("lambert", |_t, v| {
+            phong_with(Reflectance::Lambert, true, true, v)
+        }),
+        ("phong", |_t, v| {
+            phong_with(Reflectance::Phong, true, true, v)
+        }),
+        ("blinn_phong", |_t, v| {
+            phong_with(Reflectance::BlinnPhong, true, true, v)
+        }),
+        ("blinn_phong/ka=albedo", |_t, v| {
+            phong_with(Reflectance::BlinnPhong, true, false, v)
+        }),
     ];
     for (name, f) in cases {
         let rep = gradcheck(f, &inputs, &opts).unwrap();
@@ -276,21 +360,50 @@ fn reflection_models_gradcheck() {
     // The specular parameters really get gradients.
     let tape = Tape::new();
     let vars: Vec<_> = inputs.iter().map(|x| tape.leaf(x.clone())).collect();
-    let g = tape.backward(phong_with(Reflectance::Phong, true, true, &vars).sum()).unwrap();
+    let g = tape
+        .backward(phong_with(Reflectance::Phong, true, true, &vars).sum())
+        .unwrap();
     assert!(g.wrt(vars[5])[[]].abs() > 1e-6, "no shininess gradient");
-    assert!(g.wrt(vars[4]).iter().all(|x| x.abs() > 1e-6), "no ks gradient");
+    assert!(
+        g.wrt(vars[4]).iter().all(|x| x.abs() > 1e-6),
+        "no ks gradient"
+    );
 }
 
 #[test]
 fn reflection_models_fused_equal_composed() {
     let inputs = phong_inputs();
     let cases: [(&str, Build, Build); 6] = [
-        ("lambert", |_t, v| phong_with(Reflectance::Lambert, true, true, v), |_t, v| phong_with(Reflectance::Lambert, false, true, v)),
-        ("phong", |_t, v| phong_with(Reflectance::Phong, true, true, v), |_t, v| phong_with(Reflectance::Phong, false, true, v)),
-        ("blinn", |_t, v| phong_with(Reflectance::BlinnPhong, true, true, v), |_t, v| phong_with(Reflectance::BlinnPhong, false, true, v)),
-        ("lambert/ka=albedo", |_t, v| phong_with(Reflectance::Lambert, true, false, v), |_t, v| phong_with(Reflectance::Lambert, false, false, v)),
-        ("phong/ka=albedo", |_t, v| phong_with(Reflectance::Phong, true, false, v), |_t, v| phong_with(Reflectance::Phong, false, false, v)),
-        ("blinn/ka=albedo", |_t, v| phong_with(Reflectance::BlinnPhong, true, false, v), |_t, v| phong_with(Reflectance::BlinnPhong, false, false, v)),
+        (
+            "lambert",
+            |_t, v| phong_with(Reflectance::Lambert, true, true, v),
+            |_t, v| phong_with(Reflectance::Lambert, false, true, v),
+        ),
+        (
+            "phong",
+            |_t, v| phong_with(Reflectance::Phong, true, true, v),
+            |_t, v| phong_with(Reflectance::Phong, false, true, v),
+        ),
+        (
+            "blinn",
+            |_t, v| phong_with(Reflectance::BlinnPhong, true, true, v),
+            |_t, v| phong_with(Reflectance::BlinnPhong, false, true, v),
+        ),
+        (
+            "lambert/ka=albedo",
+            |_t, v| phong_with(Reflectance::Lambert, true, false, v),
+            |_t, v| phong_with(Reflectance::Lambert, false, false, v),
+        ),
+        (
+            "phong/ka=albedo",
+            |_t, v| phong_with(Reflectance::Phong, true, false, v),
+            |_t, v| phong_with(Reflectance::Phong, false, false, v),
+        ),
+        (
+            "blinn/ka=albedo",
+            |_t, v| phong_with(Reflectance::BlinnPhong, true, false, v),
+            |_t, v| phong_with(Reflectance::BlinnPhong, false, false, v),
+        ),
     ];
     for (name, a, b) in cases {
         agree(name, a, b, &inputs, 1e-10);
@@ -299,8 +412,20 @@ fn reflection_models_fused_equal_composed() {
     let mut swapped = inputs.clone();
     swapped[2] = t(&[3], vec![0.7, 0.6, 0.5]);
     swapped[4] = Rng::new(3).uniform_tensor(&[NF, 3], 0.1, 0.6);
-    agree("phong/shared albedo", |_t, v| phong_with(Reflectance::Phong, true, true, v), |_t, v| phong_with(Reflectance::Phong, false, true, v), &swapped, 1e-10);
-    agree("blinn/shared albedo", |_t, v| phong_with(Reflectance::BlinnPhong, true, false, v), |_t, v| phong_with(Reflectance::BlinnPhong, false, false, v), &swapped, 1e-10);
+    agree(
+        "phong/shared albedo",
+        |_t, v| phong_with(Reflectance::Phong, true, true, v),
+        |_t, v| phong_with(Reflectance::Phong, false, true, v),
+        &swapped,
+        1e-10,
+    );
+    agree(
+        "blinn/shared albedo",
+        |_t, v| phong_with(Reflectance::BlinnPhong, true, false, v),
+        |_t, v| phong_with(Reflectance::BlinnPhong, false, false, v),
+        &swapped,
+        1e-10,
+    );
 }
 
 #[test]
@@ -310,23 +435,38 @@ fn grazing_light_and_huge_shininess() {
     let mut inputs = phong_inputs();
     let n = 4;
     inputs[0] = t(&[n, 3], vec![0.0; 3 * n]);
-    inputs[1] = t(&[n, 3], vec![0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1e-9, 1.0, 0.0, -1e-3, 1.0]);
+    inputs[1] = t(
+        &[n, 3],
+        vec![
+            0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1e-9, 1.0, 0.0, -1e-3, 1.0,
+        ],
+    );
     inputs[2] = t(&[n, 3], vec![0.5; 3 * n]);
     inputs[8] = t(&[3], vec![-1.0, 0.0, 0.0]); // travels along -x: grazing for normal +z
     inputs[10] = t(&[3], vec![0.0, -1.0, 1e-6]);
     inputs[12] = t(&[3], vec![5.0, 0.0, 0.0]);
     for s in [1.0, 100.0, 1e4] {
         inputs[5] = t(&[], vec![s]);
-        for model in [Reflectance::Lambert, Reflectance::Phong, Reflectance::BlinnPhong] {
+        for model in [
+            Reflectance::Lambert,
+            Reflectance::Phong,
+            Reflectance::BlinnPhong,
+        ] {
             let tape = Tape::new();
             let vars: Vec<_> = inputs.iter().map(|x| tape.leaf(x.clone())).collect();
-            let (fu, co) = (phong_with(model, true, true, &vars), phong_with(model, false, true, &vars));
+            let (fu, co) = (
+                phong_with(model, true, true, &vars),
+                phong_with(model, false, true, &vars),
+            );
             let (a, b) = (fu.value().unwrap(), co.value().unwrap());
             assert!(max_diff(&a, &b) < 1e-12, "{model:?} s={s}");
             assert!(a.iter().all(|x| x.is_finite()));
             let g = tape.backward(fu.sum() + co.sum()).unwrap();
             for (k, v) in vars.iter().enumerate() {
-                assert!(g.wrt(*v).iter().all(|x| x.is_finite()), "{model:?} s={s}: input {k}");
+                assert!(
+                    g.wrt(*v).iter().all(|x| x.is_finite()),
+                    "{model:?} s={s}: input {k}"
+                );
             }
         }
     }
@@ -352,10 +492,38 @@ fn grazing_light_and_huge_shininess() {
         rtol: 1e-3,
         ..GradcheckOptions::default()
     };
-    check("phong/s=1e4", gradcheck(|_t: &Tape<f64>, v| phong_with(Reflectance::Phong, true, true, v), &inputs, &opts).unwrap());
-    check("blinn/s=1e4", gradcheck(|_t: &Tape<f64>, v| phong_with(Reflectance::BlinnPhong, true, true, v), &inputs, &opts).unwrap());
-    agree("phong/s=1e4", |_t, v| phong_with(Reflectance::Phong, true, true, v), |_t, v| phong_with(Reflectance::Phong, false, true, v), &inputs, 1e-10);
-    agree("blinn/s=1e4", |_t, v| phong_with(Reflectance::BlinnPhong, true, true, v), |_t, v| phong_with(Reflectance::BlinnPhong, false, true, v), &inputs, 1e-10);
+    check(
+        "phong/s=1e4",
+        gradcheck(
+            |_t: &Tape<f64>, v| phong_with(Reflectance::Phong, true, true, v),
+            &inputs,
+            &opts,
+        )
+        .unwrap(),
+    );
+    check(
+        "blinn/s=1e4",
+        gradcheck(
+            |_t: &Tape<f64>, v| phong_with(Reflectance::BlinnPhong, true, true, v),
+            &inputs,
+            &opts,
+        )
+        .unwrap(),
+    );
+    agree(
+        "phong/s=1e4",
+        |_t, v| phong_with(Reflectance::Phong, true, true, v),
+        |_t, v| phong_with(Reflectance::Phong, false, true, v),
+        &inputs,
+        1e-10,
+    );
+    agree(
+        "blinn/s=1e4",
+        |_t, v| phong_with(Reflectance::BlinnPhong, true, true, v),
+        |_t, v| phong_with(Reflectance::BlinnPhong, false, true, v),
+        &inputs,
+        1e-10,
+    );
 }
 
 // ---------------------------------------------------------------- spherical harmonics
@@ -378,8 +546,22 @@ fn sh_gradcheck_and_agree() {
     let opts = GradcheckOptions::default();
     for shared in [false, true] {
         let inputs = sh_inputs(shared);
-        check("sh_shade", gradcheck(|_t: &Tape<f64>, v| sh_shade(v[0], v[1], v[2]), &inputs, &opts).unwrap());
-        agree("sh_shade", |_t, v| sh_shade(v[0], v[1], v[2]), |_t, v| sh_shade_composed(v[0], v[1], v[2]), &inputs, 1e-10);
+        check(
+            "sh_shade",
+            gradcheck(
+                |_t: &Tape<f64>, v| sh_shade(v[0], v[1], v[2]),
+                &inputs,
+                &opts,
+            )
+            .unwrap(),
+        );
+        agree(
+            "sh_shade",
+            |_t, v| sh_shade(v[0], v[1], v[2]),
+            |_t, v| sh_shade_composed(v[0], v[1], v[2]),
+            &inputs,
+            1e-10,
+        );
     }
     // The basis as in CONVENTIONS.md: n = +z with only coefficient 6 (Y_20) set to 1 gives
     // 0.315392 * 2 times the albedo.
@@ -395,7 +577,10 @@ fn sh_gradcheck_and_agree() {
     )
     .value()
     .unwrap();
-    assert_eq!(y.iter().copied().collect::<Vec<_>>(), vec![0.315392 * 2.0, 0.488603, 0.282095]);
+    assert_eq!(
+        y.iter().copied().collect::<Vec<_>>(),
+        vec![0.315392 * 2.0, 0.488603, 0.282095]
+    );
 }
 
 // ---------------------------------------------------------------- textures
@@ -433,7 +618,12 @@ fn tex_inputs(h: usize, w: usize, c: usize, n: usize, seed: u64) -> Vec<Tensor<f
         let rho = 2f64.powf(lam);
         let a = rng.uniform(0.0, std::f64::consts::TAU);
         let b = a + 1.3;
-        da.extend([rho * a.cos() / w as f64, rho * a.sin() / h as f64, 0.6 * rho * b.cos() / w as f64, 0.6 * rho * b.sin() / h as f64]);
+        da.extend([
+            rho * a.cos() / w as f64,
+            rho * a.sin() / h as f64,
+            0.6 * rho * b.cos() / w as f64,
+            0.6 * rho * b.sin() / h as f64,
+        ]);
     }
     vec![texels, t(&[n, 2], uv), t(&[n, 4], da)]
 }
@@ -480,24 +670,36 @@ fn texture_gradcheck_and_agree() {
     let v: Vec<_> = inputs.iter().map(|x| tape.leaf(x.clone())).collect();
     let g = tape.backward(tex_fused(&tape, &v).sum()).unwrap();
     let gda = g.wrt(v[2]);
-    assert!(gda.iter().filter(|x| x.abs() > 1e-8).count() >= 10, "{gda:?}");
+    assert!(
+        gda.iter().filter(|x| x.abs() > 1e-8).count() >= 10,
+        "{gda:?}"
+    );
 }
 
 #[test]
 fn texture_texel_gradient_is_deterministic() {
     let inputs = tex_inputs(32, 24, 3, 5000, 9);
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| {
-            let tape = Tape::<f32>::new();
-            let cast = |x: &Tensor<f64>| x.mapv(|v| v as f32);
-            let tex = tape.leaf(cast(&inputs[0]));
-            let uv = tape.leaf(cast(&inputs[1]));
-            let da = tape.leaf(cast(&inputs[2]));
-            let w = tape.constant(Rng::new(4).normal_tensor(&[5000, 3]));
-            let y = sample(tex, uv, Some(da), Sampler::new(Filter::Trilinear, Wrap::Mirror));
-            let g = tape.backward((y * w).sum()).unwrap();
-            (g.wrt(tex), g.wrt(uv), g.wrt(da))
-        })
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let tape = Tape::<f32>::new();
+                let cast = |x: &Tensor<f64>| x.mapv(|v| v as f32);
+                let tex = tape.leaf(cast(&inputs[0]));
+                let uv = tape.leaf(cast(&inputs[1]));
+                let da = tape.leaf(cast(&inputs[2]));
+                let w = tape.constant(Rng::new(4).normal_tensor(&[5000, 3]));
+                let y = sample(
+                    tex,
+                    uv,
+                    Some(da),
+                    Sampler::new(Filter::Trilinear, Wrap::Mirror),
+                );
+                let g = tape.backward((y * w).sum()).unwrap();
+                (g.wrt(tex), g.wrt(uv), g.wrt(da))
+            })
     };
     let (a, b) = (run(1), run(3));
     let bits = |x: &Tensor<f32>| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
@@ -516,7 +718,12 @@ fn uv_far_outside_the_unit_square() {
             let s = Sampler::new(filter, wrap);
             let at = |uv: Vec<f64>| {
                 let tape = Tape::<f64>::new();
-                let y = sample(tape.constant(texels.clone()), tape.constant(t(&[uv.len() / 2, 2], uv)), None, s);
+                let y = sample(
+                    tape.constant(texels.clone()),
+                    tape.constant(t(&[uv.len() / 2, 2], uv)),
+                    None,
+                    s,
+                );
                 (*y.value().unwrap()).clone()
             };
             let reference = at(base.to_vec());
@@ -536,7 +743,12 @@ fn uv_far_outside_the_unit_square() {
             }
             // Mirror: an odd shift reflects.
             if wrap == Wrap::Mirror {
-                let reflected = at(vec![1.0 - base[0] + 1.0, 1.0 - base[1] + 1.0, 1.0 - base[2] - 1.0, 1.0 - base[3] + 3.0]);
+                let reflected = at(vec![
+                    1.0 - base[0] + 1.0,
+                    1.0 - base[1] + 1.0,
+                    1.0 - base[2] - 1.0,
+                    1.0 - base[3] + 3.0,
+                ]);
                 assert!(max_diff(&reflected, &reference) < 1e-9);
             }
         }
@@ -545,10 +757,25 @@ fn uv_far_outside_the_unit_square() {
     let tape = Tape::<f32>::new();
     let tex32 = tape.constant(texels.mapv(|v| v as f32));
     let s = Sampler::new(Filter::Bilinear, Wrap::Repeat);
-    let near = sample(tex32, tape.constant(ArrayD::from_shape_vec(IxDyn(&[1, 2]), vec![0.3125f32, 0.6875]).unwrap()), None, s);
-    let far = sample(tex32, tape.constant(ArrayD::from_shape_vec(IxDyn(&[1, 2]), vec![1000.3125f32, -999.3125]).unwrap()), None, s);
+    let near = sample(
+        tex32,
+        tape.constant(ArrayD::from_shape_vec(IxDyn(&[1, 2]), vec![0.3125f32, 0.6875]).unwrap()),
+        None,
+        s,
+    );
+    let far = sample(
+        tex32,
+        tape.constant(
+            ArrayD::from_shape_vec(IxDyn(&[1, 2]), vec![1000.3125f32, -999.3125]).unwrap(),
+        ),
+        None,
+        s,
+    );
     let (a, b) = (near.value().unwrap(), far.value().unwrap());
-    assert!(a.iter().zip(b.iter()).all(|(x, y)| (x - y).abs() < 1e-3), "{a:?} {b:?}");
+    assert!(
+        a.iter().zip(b.iter()).all(|(x, y)| (x - y).abs() < 1e-3),
+        "{a:?} {b:?}"
+    );
 }
 
 #[test]
@@ -557,13 +784,23 @@ fn texture_from_png_roundtrip() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("tex.png");
     // A 3 x 5 (non-power-of-two) RGB texture.
-    let img = ndarray::Array3::from_shape_fn((3, 5, 3), |(r, c, k)| ((r * 5 + c) * 3 + k) as f64 / 64.0);
+    let img =
+        ndarray::Array3::from_shape_fn((3, 5, 3), |(r, c, k)| ((r * 5 + c) * 3 + k) as f64 / 64.0);
     render_ops::io::write_png(&path, &img).unwrap();
     let tape = Tape::<f64>::new();
-    let tex = render_ops::texture::Texture::from_png(&tape, &path, Sampler::new(Filter::Nearest, Wrap::Clamp), true).unwrap();
+    let tex = render_ops::texture::Texture::from_png(
+        &tape,
+        &path,
+        Sampler::new(Filter::Nearest, Wrap::Clamp),
+        true,
+    )
+    .unwrap();
     assert_eq!(tex.texels.shape(), vec![3, 5, 3]);
     // Texel (row 1, col 3) centre: u = 3.5 / 5, v = 1 - 1.5 / 3.
-    let y = tex.sample(tape.constant(t(&[1, 2], vec![0.7, 0.5])), None).value().unwrap();
+    let y = tex
+        .sample(tape.constant(t(&[1, 2], vec![0.7, 0.5])), None)
+        .value()
+        .unwrap();
     for k in 0..3 {
         assert!((y[[0, k]] - img[[1, 3, k]]).abs() <= 0.5 / 255.0 + 1e-12);
     }
@@ -595,19 +832,30 @@ fn uv_sphere(nlat: usize, nlon: usize) -> UvSphere {
     let mut faces = Vec::new();
     for i in 0..nlat {
         for j in 0..nlon {
-            for tri in [[id(i, j), id(i + 1, j), id(i + 1, j + 1)], [id(i, j), id(i + 1, j + 1), id(i, j + 1)]] {
+            for tri in [
+                [id(i, j), id(i + 1, j), id(i + 1, j + 1)],
+                [id(i, j), id(i + 1, j + 1), id(i, j + 1)],
+            ] {
                 let p = |k: usize| positions[tri[k] as usize];
                 let (a, b, c) = (p(0), p(1), p(2));
                 let e1 = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
                 let e2 = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-                let n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
+                let n = [
+                    e1[1] * e2[2] - e1[2] * e2[1],
+                    e1[2] * e2[0] - e1[0] * e2[2],
+                    e1[0] * e2[1] - e1[1] * e2[0],
+                ];
                 let area = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
                 if area < 1e-12 {
                     continue;
                 }
                 let centre = [a[0] + b[0] + c[0], a[1] + b[1] + c[1], a[2] + b[2] + c[2]];
                 let outward = n[0] * centre[0] + n[1] * centre[1] + n[2] * centre[2] > 0.0;
-                faces.push(if outward { tri } else { [tri[0], tri[2], tri[1]] });
+                faces.push(if outward {
+                    tri
+                } else {
+                    [tri[0], tri[2], tri[1]]
+                });
             }
         }
     }
@@ -623,10 +871,24 @@ fn rows<const K: usize>(v: &[[f64; K]]) -> Tensor<f64> {
 }
 
 fn camera(eye: [f64; 3]) -> Camera {
-    Camera::perspective_look_at(eye, [0.0; 3], [0.0, 1.0, 0.0], 40f64.to_radians(), 1.0, 0.5, 10.0).unwrap()
+    Camera::perspective_look_at(
+        eye,
+        [0.0; 3],
+        [0.0, 1.0, 0.0],
+        40f64.to_radians(),
+        1.0,
+        0.5,
+        10.0,
+    )
+    .unwrap()
 }
 
-fn raster<'t>(positions: Var<'t, f64>, faces: &Arc<Vec<[u32; 3]>>, cam: &Camera, size: usize) -> Rasterized<'t, f64> {
+fn raster<'t>(
+    positions: Var<'t, f64>,
+    faces: &Arc<Vec<[u32; 3]>>,
+    cam: &Camera,
+    size: usize,
+) -> Rasterized<'t, f64> {
     let clip = to_clip(positions, &cam.view_proj());
     rasterize(clip, faces.clone(), &RasterSettings::new(size, size)).unwrap()
 }
@@ -661,7 +923,11 @@ fn shader_pipeline_gradcheck_end_to_end() {
     let p0 = rows(&s.positions);
     let weights = {
         let tape = Tape::new();
-        interior_weights(&raster(tape.constant(p0.clone()), &s.faces, &cam, size), 0.03, 17)
+        interior_weights(
+            &raster(tape.constant(p0.clone()), &s.faces, &cam, size),
+            0.03,
+            17,
+        )
     };
     let uvs = rows(&s.uvs);
     let mut rng = Rng::new(3);
@@ -693,7 +959,12 @@ fn shader_pipeline_gradcheck_end_to_end() {
                                 color: tape.constant(t(&[3], vec![1.0, 0.9, 0.8])),
                             })
                             .with_ambient(AmbientLight::constant(tape, [0.1, 0.1, 0.1]));
-                        let m = Material::constant(tape, Reflectance::BlinnPhong, [0.3, 0.3, 0.3], 12.0);
+                        let m = Material::constant(
+                            tape,
+                            Reflectance::BlinnPhong,
+                            [0.3, 0.3, 0.3],
+                            12.0,
+                        );
                         shade(&fi.surface(albedo), &m, &lights, fi.eye)
                     }
                 },
@@ -719,7 +990,10 @@ fn uv_derivatives_match_pixel_differences_and_gradcheck() {
     let tape = Tape::new();
     let r = raster(tape.constant(rows(&plane.positions)), &faces, &cam, 32);
     let uvv = tape.leaf(rows(&plane.uvs));
-    let uv = render_ops::interpolate::interpolate(uvv, &r).unwrap().value().unwrap();
+    let uv = render_ops::interpolate::interpolate(uvv, &r)
+        .unwrap()
+        .value()
+        .unwrap();
     let da = uv_derivatives(uvv, &r).value().unwrap();
     let f = &r.fragments;
     let mut checked = 0;
@@ -728,7 +1002,8 @@ fn uv_derivatives_match_pixel_differences_and_gradcheck() {
         if col + 1 >= f.width || row + 1 >= f.height {
             continue;
         }
-        let (Some(a), Some(b), Some(c)) = (f.nearest(p), f.nearest(p + 1), f.nearest(p + f.width)) else {
+        let (Some(a), Some(b), Some(c)) = (f.nearest(p), f.nearest(p + 1), f.nearest(p + f.width))
+        else {
             continue;
         };
         for k in 0..2 {
@@ -764,23 +1039,55 @@ fn auxiliary_outputs_and_alpha() {
     let code = tape.constant(ncc(&s.positions));
     let mesh = MeshAttributes::new(pos).with_attribute("ncc", code);
     let eye = tape.constant(t(&[3], vec![0.0, 0.0, 3.0]));
-    let centre = |img: &Tensor<f64>| (0..img.shape()[2]).map(|k| img[[16, 16, k]]).collect::<Vec<_>>();
+    let centre = |img: &Tensor<f64>| {
+        (0..img.shape()[2])
+            .map(|k| img[[16, 16, k]])
+            .collect::<Vec<_>>()
+    };
     // Normal map: the point facing the camera is +z.
-    let nm = render_shader(&r, &mesh, eye, |f| normal_map(f.normal), &[0.0; 3]).unwrap().value().unwrap();
+    let nm = render_shader(&r, &mesh, eye, |f| normal_map(f.normal), &[0.0; 3])
+        .unwrap()
+        .value()
+        .unwrap();
     let c = centre(&nm);
-    assert!((c[0] - 0.5).abs() < 0.02 && (c[1] - 0.5).abs() < 0.02 && (c[2] - 1.0).abs() < 1e-3 && c[3] == 1.0, "{c:?}");
+    assert!(
+        (c[0] - 0.5).abs() < 0.02
+            && (c[1] - 0.5).abs() < 0.02
+            && (c[2] - 1.0).abs() < 1e-3
+            && c[3] == 1.0,
+        "{c:?}"
+    );
     // Depth: view depth 2 at the front point.
-    let dm = render_shader(&r, &mesh, eye, |f| depth_map(f.view_depth, 0.5, 10.0), &[1.0]).unwrap().value().unwrap();
+    let dm = render_shader(
+        &r,
+        &mesh,
+        eye,
+        |f| depth_map(f.view_depth, 0.5, 10.0),
+        &[1.0],
+    )
+    .unwrap()
+    .value()
+    .unwrap();
     let c = centre(&dm);
     assert!((c[0] - (2.0 - 0.5) / 9.5).abs() < 2e-3, "{c:?}");
     assert_eq!(dm[[0, 0, 0]], 1.0);
     // PNCC: the bounding box of the sphere is [-1, 1]^3, the front point (0, 0, 1) maps to
     // (0.5, 0.5, 1); the attribute and the pncc function agree.
-    let pc = render_shader(&r, &mesh, eye, |f| f.attribute("ncc").unwrap(), &[0.0; 3]).unwrap().value().unwrap();
+    let pc = render_shader(&r, &mesh, eye, |f| f.attribute("ncc").unwrap(), &[0.0; 3])
+        .unwrap()
+        .value()
+        .unwrap();
     let c = centre(&pc);
-    assert!((c[0] - 0.5).abs() < 0.02 && (c[1] - 0.5).abs() < 0.02 && (c[2] - 1.0).abs() < 2e-3, "{c:?}");
+    assert!(
+        (c[0] - 0.5).abs() < 0.02 && (c[1] - 0.5).abs() < 0.02 && (c[2] - 1.0).abs() < 2e-3,
+        "{c:?}"
+    );
     let direct = pncc(code, &r).unwrap().value().unwrap();
-    let via = run_shader(&r, &mesh, eye, |f| f.attribute("ncc").unwrap()).unwrap().color.value().unwrap();
+    let via = run_shader(&r, &mesh, eye, |f| f.attribute("ncc").unwrap())
+        .unwrap()
+        .color
+        .value()
+        .unwrap();
     assert_eq!(max_diff(&direct, &via), 0.0);
     // A shader alpha: colour a c + (1 - a) bg, last channel coverage * a.
     let img = render_shader(
@@ -799,13 +1106,21 @@ fn auxiliary_outputs_and_alpha() {
     .value()
     .unwrap();
     assert_eq!(centre(&img), vec![0.25, 0.25, 1.0, 0.25]);
-    assert_eq!((0..4).map(|k| img[[0, 0, k]]).collect::<Vec<_>>(), vec![0.0, 0.0, 1.0, 0.0]);
+    assert_eq!(
+        (0..4).map(|k| img[[0, 0, k]]).collect::<Vec<_>>(),
+        vec![0.0, 0.0, 1.0, 0.0]
+    );
     // Sampling without uvs is an error naming the problem, not a panic.
     let err = render_shader(
         &r,
         &mesh,
         eye,
-        |f: &FragmentInputs<'_, f64>| f.sample(&Texture::new(tape.constant(ArrayD::zeros(IxDyn(&[2, 2, 3]))), Sampler::default())),
+        |f: &FragmentInputs<'_, f64>| {
+            f.sample(&Texture::new(
+                tape.constant(ArrayD::zeros(IxDyn(&[2, 2, 3]))),
+                Sampler::default(),
+            ))
+        },
         &[0.0; 3],
     )
     .unwrap_err();
@@ -817,7 +1132,11 @@ fn auxiliary_outputs_and_alpha() {
 /// Conjugate gradients on a quadratic `f` given by its gradient `grad` (called with the
 /// current point; `grad(0)` is evaluated once): returns the minimiser reached after `iters`
 /// steps from `x`.
-fn conjugate_gradients(mut x: Vec<f64>, iters: usize, grad: &dyn Fn(&[f64]) -> Vec<f64>) -> Vec<f64> {
+fn conjugate_gradients(
+    mut x: Vec<f64>,
+    iters: usize,
+    grad: &dyn Fn(&[f64]) -> Vec<f64>,
+) -> Vec<f64> {
     let g0 = grad(&vec![0.0; x.len()]);
     let hess = |p: &[f64]| -> Vec<f64> { grad(p).iter().zip(&g0).map(|(a, b)| a - b).collect() };
     let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
@@ -851,17 +1170,44 @@ fn inverse_texture_from_six_views() {
     let n = 64;
     let truth = ArrayD::from_shape_fn(IxDyn(&[n, n, 3]), |i| {
         let (y, x, c) = (i[0] as f64 / n as f64, i[1] as f64 / n as f64, i[2] as f64);
-        0.5 + 0.2 * (std::f64::consts::TAU * (2.0 * x + c * 0.3)).sin() * (std::f64::consts::TAU * (1.5 * y)).cos()
+        0.5 + 0.2
+            * (std::f64::consts::TAU * (2.0 * x + c * 0.3)).sin()
+            * (std::f64::consts::TAU * (1.5 * y)).cos()
             + 0.15 * (std::f64::consts::TAU * (5.0 * x + 3.0 * y + c)).sin()
     });
     let s = uv_sphere(24, 48);
-    let eyes = [[3.0, 0.0, 0.0], [-3.0, 0.0, 0.0], [0.0, 3.0, 0.01], [0.0, -3.0, 0.01], [0.0, 0.0, 3.0], [0.0, 0.0, -3.0]];
+    let eyes = [
+        [3.0, 0.0, 0.0],
+        [-3.0, 0.0, 0.0],
+        [0.0, 3.0, 0.01],
+        [0.0, -3.0, 0.01],
+        [0.0, 0.0, 3.0],
+        [0.0, 0.0, -3.0],
+    ];
     let cams: Vec<Camera> = eyes
         .iter()
-        .map(|&e| Camera::perspective_look_at(e, [0.0; 3], [0.0, 1.0, 0.0], 45f64.to_radians(), 1.0, 0.5, 10.0).unwrap())
+        .map(|&e| {
+            Camera::perspective_look_at(
+                e,
+                [0.0; 3],
+                [0.0, 1.0, 0.0],
+                45f64.to_radians(),
+                1.0,
+                0.5,
+                10.0,
+            )
+            .unwrap()
+        })
         .collect();
     let size = 80;
-    fn render_all<'t>(tape: &'t Tape<f64>, tex: Var<'t, f64>, s: &UvSphere, cams: &[Camera], eyes: &[[f64; 3]], size: usize) -> Vec<Var<'t, f64>> {
+    fn render_all<'t>(
+        tape: &'t Tape<f64>,
+        tex: Var<'t, f64>,
+        s: &UvSphere,
+        cams: &[Camera],
+        eyes: &[[f64; 3]],
+        size: usize,
+    ) -> Vec<Var<'t, f64>> {
         let pos = tape.constant(rows(&s.positions));
         let mesh = MeshAttributes::new(pos).with_uvs(tape.constant(rows(&s.uvs)));
         let texture = Texture::new(tex, Sampler::new(Filter::Bilinear, Wrap::Repeat));
@@ -869,22 +1215,40 @@ fn inverse_texture_from_six_views() {
             .zip(eyes)
             .map(|(cam, e)| {
                 let r = raster(pos, &s.faces, cam, size);
-                render_shader(&r, &mesh, tape.constant(t(&[3], e.to_vec())), |f| f.sample(&texture), &[0.0; 3]).unwrap()
+                render_shader(
+                    &r,
+                    &mesh,
+                    tape.constant(t(&[3], e.to_vec())),
+                    |f| f.sample(&texture),
+                    &[0.0; 3],
+                )
+                .unwrap()
             })
             .collect()
     }
     let targets: Vec<Tensor<f64>> = {
         let tape = Tape::new();
-        render_all(&tape, tape.constant(truth.clone()), &s, &cams, &eyes, size).iter().map(|v| (*v.value().unwrap()).clone()).collect()
+        render_all(&tape, tape.constant(truth.clone()), &s, &cams, &eyes, size)
+            .iter()
+            .map(|v| (*v.value().unwrap()).clone())
+            .collect()
     };
     let grad = |x: &[f64]| -> Vec<f64> {
         let tape = Tape::new();
         let tex = tape.leaf(t(&[n, n, 3], x.to_vec()));
         let mut loss = tape.scalar(0.0);
-        for (img, target) in render_all(&tape, tex, &s, &cams, &eyes, size).into_iter().zip(&targets) {
+        for (img, target) in render_all(&tape, tex, &s, &cams, &eyes, size)
+            .into_iter()
+            .zip(&targets)
+        {
             loss = loss + (img - tape.constant(target.clone())).square().sum();
         }
-        tape.backward(loss).unwrap().wrt(tex).iter().copied().collect()
+        tape.backward(loss)
+            .unwrap()
+            .wrt(tex)
+            .iter()
+            .copied()
+            .collect()
     };
     // Visible texels: total bilinear weight of the samples reading them (A^T 1) >= 1.
     let coverage: Vec<f64> = {
@@ -894,9 +1258,14 @@ fn inverse_texture_from_six_views() {
         for img in render_all(&tape, tex, &s, &cams, &eyes, size) {
             total = total + img.slice(2, 0, 3).sum();
         }
-        tape.backward(total).unwrap().wrt(tex).iter().copied().collect()
+        tape.backward(total)
+            .unwrap()
+            .wrt(tex)
+            .iter()
+            .copied()
+            .collect()
     };
-    let x = conjugate_gradients(vec![0.5; n * n * 3], 40, &grad);
+    let x = conjugate_gradients(vec![0.5; n * n * 3], 20, &grad);
     let (mut se, mut count) = (0.0, 0usize);
     for (i, (&xi, &ti)) in x.iter().zip(truth.iter()).enumerate() {
         if coverage[i] >= 1.0 {
@@ -906,7 +1275,10 @@ fn inverse_texture_from_six_views() {
     }
     let psnr = 10.0 * (1.0 / (se / count as f64)).log10();
     let visible = count as f64 / (n * n * 3) as f64;
-    eprintln!("texture recovery: PSNR {psnr:.1} dB over {:.0}% of the texels", 100.0 * visible);
+    eprintln!(
+        "texture recovery: PSNR {psnr:.1} dB over {:.0}% of the texels",
+        100.0 * visible
+    );
     assert!(visible > 0.8, "only {visible} of the texels visible");
     assert!(psnr >= 30.0, "PSNR {psnr} dB");
 }
@@ -915,7 +1287,9 @@ fn inverse_texture_from_six_views() {
 fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Vec<f64> {
     let n = b.len();
     for col in 0..n {
-        let piv = (col..n).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs())).unwrap();
+        let piv = (col..n)
+            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
+            .unwrap();
         a.swap(col, piv);
         b.swap(col, piv);
         for row in col + 1..n {
@@ -952,25 +1326,52 @@ fn inverse_sh_coefficients_from_one_image() {
     ];
     let mesh = render_ops::mesh::Mesh::<f64>::icosphere(3, 1.0);
     let cam = camera([0.0, 0.3, 3.0]);
-    let albedo: Vec<[f64; 3]> = mesh.positions.iter().map(|p| [0.6 + 0.3 * p[0], 0.5 + 0.2 * p[1], 0.7 - 0.2 * p[2]]).collect();
-    fn render<'t>(tape: &'t Tape<f64>, coeffs: Var<'t, f64>, mesh: &render_ops::mesh::Mesh<f64>, albedo: &[[f64; 3]], cam: &Camera) -> Var<'t, f64> {
+    let albedo: Vec<[f64; 3]> = mesh
+        .positions
+        .iter()
+        .map(|p| [0.6 + 0.3 * p[0], 0.5 + 0.2 * p[1], 0.7 - 0.2 * p[2]])
+        .collect();
+    fn render<'t>(
+        tape: &'t Tape<f64>,
+        coeffs: Var<'t, f64>,
+        mesh: &render_ops::mesh::Mesh<f64>,
+        albedo: &[[f64; 3]],
+        cam: &Camera,
+    ) -> Var<'t, f64> {
         let faces = Arc::new(mesh.faces.clone());
         let pos = tape.constant(rows(&mesh.positions));
         let r = raster(pos, &faces, cam, 64);
         let attrs = MeshAttributes::new(pos).with_attribute("albedo", tape.constant(rows(albedo)));
         let light = ShLight { coeffs };
         let eye = tape.constant(t(&[3], vec![0.0, 0.3, 3.0]));
-        render_shader(&r, &attrs, eye, |f| sh_shade(f.normal, f.attribute("albedo").unwrap(), light.coeffs), &[0.0; 3]).unwrap()
+        render_shader(
+            &r,
+            &attrs,
+            eye,
+            |f| sh_shade(f.normal, f.attribute("albedo").unwrap(), light.coeffs),
+            &[0.0; 3],
+        )
+        .unwrap()
     }
     let target = {
         let tape = Tape::new();
-        (*render(&tape, tape.constant(rows(&truth)), &mesh, &albedo, &cam).value().unwrap()).clone()
+        (*render(&tape, tape.constant(rows(&truth)), &mesh, &albedo, &cam)
+            .value()
+            .unwrap())
+        .clone()
     };
     let grad = |c: &[f64]| -> Vec<f64> {
         let tape = Tape::new();
         let cv = tape.leaf(t(&[9, 3], c.to_vec()));
-        let loss = (render(&tape, cv, &mesh, &albedo, &cam) - tape.constant(target.clone())).square().sum();
-        tape.backward(loss).unwrap().wrt(cv).iter().copied().collect()
+        let loss = (render(&tape, cv, &mesh, &albedo, &cam) - tape.constant(target.clone()))
+            .square()
+            .sum();
+        tape.backward(loss)
+            .unwrap()
+            .wrt(cv)
+            .iter()
+            .copied()
+            .collect()
     };
     let g0 = grad(&[0.0; 27]);
     let cols: Vec<Vec<f64>> = (0..27)
@@ -981,10 +1382,17 @@ fn inverse_sh_coefficients_from_one_image() {
         })
         .collect();
     // H = [cols] (symmetric); H c = -g0.
-    let h: Vec<Vec<f64>> = (0..27).map(|i| (0..27).map(|k| cols[k][i]).collect()).collect();
+    let h: Vec<Vec<f64>> = (0..27)
+        .map(|i| (0..27).map(|k| cols[k][i]).collect())
+        .collect();
     let c = solve(h, g0.iter().map(|v| -v).collect());
     let tv: Vec<f64> = truth.iter().flatten().copied().collect();
-    let err = c.iter().zip(&tv).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+    let err = c
+        .iter()
+        .zip(&tv)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
     let norm = tv.iter().map(|v| v * v).sum::<f64>().sqrt();
     eprintln!("SH recovery: relative error {:.2e}", err / norm);
     assert!(err / norm <= 1e-3, "relative error {}", err / norm);

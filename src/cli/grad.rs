@@ -14,7 +14,10 @@ use super::{CliError, WrtArg};
 pub fn run(scene: &Path, target: &Path, wrt: WrtArg, out: &Path) -> Result<ExitCode, CliError> {
     let scene = Scene::<f64>::load(scene)?;
     let target_img = read_image::<f64>(target)?;
-    let (w, h) = (scene.desc.image.width as usize, scene.desc.image.height as usize);
+    let (w, h) = (
+        scene.desc.image.width as usize,
+        scene.desc.image.height as usize,
+    );
     let ts = target_img.shape().to_vec();
     if ts[0] != h || ts[1] != w || !(ts[2] == 3 || ts[2] == 4) {
         return Err(CliError::Message(format!(

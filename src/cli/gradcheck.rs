@@ -30,7 +30,10 @@ pub fn run(op: Option<&str>, json: bool) -> Result<ExitCode, CliError> {
                 })
             })
             .collect();
-        println!("{}", serde_json::to_string_pretty(&recs).map_err(|e| CliError::Message(e.to_string()))?);
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&recs).map_err(|e| CliError::Message(e.to_string()))?
+        );
     } else {
         print!("{}", render_table(&results));
         let failed = results.iter().filter(|r| !r.passed).count();

@@ -17,7 +17,10 @@ pub fn run(scene: &Path, out: &Path, npy: Option<&Path>) -> Result<ExitCode, Cli
     let tape = Tape::new();
     let vars = scene.vars(&tape, Wrt::default());
     let img = scene.render(&vars)?.value()?;
-    let img = img.view().into_dimensionality::<Ix3>().map_err(|e| CliError::Message(e.to_string()))?;
+    let img = img
+        .view()
+        .into_dimensionality::<Ix3>()
+        .map_err(|e| CliError::Message(e.to_string()))?;
     write_png(out, &img.slice(s![.., .., 0..3]))?;
     if let Some(npy) = npy {
         write_npy(npy, &img)?;

@@ -9,7 +9,9 @@ use ndarray::{ArrayD, IxDyn};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{broadcast_shapes, map1, map2, map3, sum_to_shape, Tensor};
+use crate::tensor::{
+    broadcast_shapes, map1, map1_fast, map2, map2_fast, map3, sum_to_shape, Tensor,
+};
 use crate::Real;
 
 /// Unary elementwise kinds; some carry a scalar parameter.
@@ -106,13 +108,15 @@ impl<T: Real> Op<T> for UnaryOp<T> {
         let z = T::zero();
         let y = match self.0 {
             Unary::Neg => map1(x, |v| -v),
-            Unary::Exp => map1(x, |v| v.exp()),
+            // exp, sin, cos, tanh, sigmoid: vectorised polynomials for f32 (see `vmath`),
+            // libm outside their range and for f64.
+            Unary::Exp => map1_fast(x, T::k_exp, T::k_exp_ok, T::exp),
             Unary::Log => map1(x, |v| v.ln()),
             Unary::Sqrt => map1(x, |v| v.sqrt()),
-            Unary::Sin => map1(x, |v| v.sin()),
-            Unary::Cos => map1(x, |v| v.cos()),
-            Unary::Tanh => map1(x, |v| v.tanh()),
-            Unary::Sigmoid => map1(x, sigmoid),
+            Unary::Sin => map1_fast(x, T::k_sin, T::k_trig_ok, T::sin),
+            Unary::Cos => map1_fast(x, T::k_cos, T::k_trig_ok, T::cos),
+            Unary::Tanh => map1_fast(x, T::k_tanh, |v| !v.is_nan(), T::tanh),
+            Unary::Sigmoid => map1_fast(x, T::k_sigmoid, |v| (-v.abs()).k_exp_ok(), sigmoid),
             // Written so that NaN passes through (`f32::max` would drop it).
             Unary::Relu => map1(x, |v| if v < z { z } else { v }),
             Unary::Abs => map1(x, |v| v.abs()),
@@ -125,8 +129,11 @@ impl<T: Real> Op<T> for UnaryOp<T> {
             Unary::PowScalar(c) => map1(x, |v| v.powf(c)),
             Unary::ScalarPow(c) => map1(x, |v| c.powf(v)),
             Unary::Clamp(lo, hi) => {
-                if !(lo <= hi) {
-                    return Err(AutodiffError::invalid("clamp", format!("lo {lo} > hi {hi}")));
+                if lo.is_nan() || hi.is_nan() || lo > hi {
+                    return Err(AutodiffError::invalid(
+                        "clamp",
+                        format!("lo {lo} > hi {hi}"),
+                    ));
                 }
                 map1(x, |v| {
                     if v < lo {
@@ -146,36 +153,51 @@ impl<T: Real> Op<T> for UnaryOp<T> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let (g, x, y) = (
-            ctx.grad_outputs[0].view(),
-            ctx.inputs[0].view(),
-            ctx.outputs[0].view(),
-        );
+        let g0 = ctx.grad_outputs[0];
+        let (g, x, y) = (g0.view(), ctx.inputs[0].view(), ctx.outputs[0].view());
         let (z, one, two) = (T::zero(), T::one(), T::one() + T::one());
         let gx = match self.0 {
-            Unary::Neg => map2(&g, &x, |g, _| -g),
+            Unary::Neg => map1(g0, |g| -g),
             Unary::Exp => map2(&g, &y, |g, y| g * y),
             Unary::Log => map2(&g, &x, |g, x| g / x),
             Unary::Sqrt => map2(&g, &y, |g, y| g / (two * y)),
-            Unary::Sin => map2(&g, &x, |g, x| g * x.cos()),
-            Unary::Cos => map2(&g, &x, |g, x| -g * x.sin()),
+            Unary::Sin => map2_fast(
+                &g,
+                &x,
+                |g, x| g * x.k_cos(),
+                |_, x| x.k_trig_ok(),
+                |g, x| g * x.cos(),
+            ),
+            Unary::Cos => map2_fast(
+                &g,
+                &x,
+                |g, x| -g * x.k_sin(),
+                |_, x| x.k_trig_ok(),
+                |g, x| -g * x.sin(),
+            ),
             Unary::Tanh => map2(&g, &y, |g, y| g * (one - y * y)),
             Unary::Sigmoid => map2(&g, &y, |g, y| g * y * (one - y)),
             Unary::Relu => map2(&g, &x, |g, x| if x > z { g } else { z }),
-            Unary::Abs => map2(&g, &x, |g, x| g * x.signum() * T::from_f64c((x != z) as u8 as f64)),
+            Unary::Abs => map2(&g, &x, |g, x| {
+                g * x.signum() * T::from_f64c((x != z) as u8 as f64)
+            }),
             Unary::Square => map2(&g, &x, |g, x| two * g * x),
             Unary::Recip => map2(&g, &y, |g, y| -g * y * y),
             Unary::AddScalar(_) => ctx.grad_outputs[0].clone(),
-            Unary::MulScalar(c) => map2(&g, &x, |g, _| g * c),
-            Unary::RSubScalar(_) => map2(&g, &x, |g, _| -g),
+            Unary::MulScalar(c) => map1(g0, |g| g * c),
+            Unary::RSubScalar(_) => map1(g0, |g| -g),
             Unary::RDivScalar(_) => map3(&g, &x, &y, |g, x, y| -g * y / x),
-            Unary::PowScalar(c) => map2(&g, &x, |g, x| {
-                if c == z {
-                    z
-                } else {
-                    g * c * x.powf(c - one)
-                }
-            }),
+            Unary::PowScalar(c) => map2(
+                &g,
+                &x,
+                |g, x| {
+                    if c == z {
+                        z
+                    } else {
+                        g * c * x.powf(c - one)
+                    }
+                },
+            ),
             Unary::ScalarPow(c) => map2(&g, &y, |g, y| g * y * c.ln()),
             Unary::Clamp(lo, hi) => map2(&g, &x, |g, x| if x >= lo && x <= hi { g } else { z }),
         };
@@ -276,7 +298,7 @@ impl<T: Real> Op<T> for BinaryOp {
             let full: Tensor<T> = match (self.0, k) {
                 (Binary::Add, _) => g.clone(),
                 (Binary::Sub, 0) => g.clone(),
-                (Binary::Sub, _) => g.mapv(|v| -v),
+                (Binary::Sub, _) => map1(g, |v| -v),
                 (Binary::Mul, 0) => map2(&gv, &bv, |g, b| g * b),
                 (Binary::Mul, _) => map2(&gv, &av, |g, a| g * a),
                 (Binary::Div, 0) => map2(&gv, &bv, |g, b| g / b),

@@ -24,17 +24,26 @@ impl<T: Real> Op<T> for IndexSelectOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let x = inputs[0];
         if self.axis >= x.ndim() {
-            return Err(AutodiffError::index("index_select", &[x.shape()], format!("axis {} out of range", self.axis)));
+            return Err(AutodiffError::index(
+                "index_select",
+                &[x.shape()],
+                format!("axis {} out of range", self.axis),
+            ));
         }
         let n = x.shape()[self.axis];
         if let Some((k, &bad)) = self.indices.iter().enumerate().find(|(_, &i)| i >= n) {
             return Err(AutodiffError::index(
                 "index_select",
                 &[x.shape()],
-                format!("index {bad} (position {k}) out of range for size {n} on axis {}", self.axis),
+                format!(
+                    "index {bad} (position {k}) out of range for size {n} on axis {}",
+                    self.axis
+                ),
             ));
         }
-        Ok(vec![into_standard(x.select(Axis(self.axis), &self.indices))])
+        Ok(vec![into_standard(
+            x.select(Axis(self.axis), &self.indices),
+        )])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
@@ -51,7 +60,14 @@ impl<T: Real> Op<T> for IndexSelectOp {
     }
 }
 
-fn check_index(op: &'static str, x: &[usize], index: &[usize], axis: usize, size_on_axis: usize, idx: &ArrayD<usize>) -> Result<()> {
+fn check_index(
+    op: &'static str,
+    x: &[usize],
+    index: &[usize],
+    axis: usize,
+    size_on_axis: usize,
+    idx: &ArrayD<usize>,
+) -> Result<()> {
     if axis >= x.len() || index.len() != x.len() {
         return Err(AutodiffError::index(
             op,
@@ -61,11 +77,19 @@ fn check_index(op: &'static str, x: &[usize], index: &[usize], axis: usize, size
     }
     for (d, (&i, &s)) in index.iter().zip(x).enumerate() {
         if d != axis && i > s {
-            return Err(AutodiffError::shape(op, &[x, index], format!("index larger than the input on dimension {d}")));
+            return Err(AutodiffError::shape(
+                op,
+                &[x, index],
+                format!("index larger than the input on dimension {d}"),
+            ));
         }
     }
     if let Some(bad) = idx.iter().find(|&&i| i >= size_on_axis) {
-        return Err(AutodiffError::index(op, &[x, index], format!("index {bad} out of range for size {size_on_axis} on axis {axis}")));
+        return Err(AutodiffError::index(
+            op,
+            &[x, index],
+            format!("index {bad} out of range for size {size_on_axis} on axis {axis}"),
+        ));
     }
     Ok(())
 }
@@ -85,7 +109,14 @@ impl<T: Real> Op<T> for GatherOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let x = inputs[0];
         let size = *x.shape().get(self.axis).unwrap_or(&0);
-        check_index("gather", x.shape(), self.index.shape(), self.axis, size, &self.index)?;
+        check_index(
+            "gather",
+            x.shape(),
+            self.index.shape(),
+            self.axis,
+            size,
+            &self.index,
+        )?;
         let mut src = vec![0usize; x.ndim()];
         let y = ArrayD::from_shape_fn(self.index.raw_dim(), |pos| {
             for d in 0..src.len() {
@@ -135,14 +166,29 @@ impl<T: Real> Op<T> for ScatterAddOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let src = inputs[0];
         if self.index.shape() != src.shape() {
-            return Err(AutodiffError::shape("scatter_add", &[src.shape(), self.index.shape()], "index must have the source's shape"));
+            return Err(AutodiffError::shape(
+                "scatter_add",
+                &[src.shape(), self.index.shape()],
+                "index must have the source's shape",
+            ));
         }
         let mut shape = src.shape().to_vec();
         if self.axis >= shape.len() {
-            return Err(AutodiffError::index("scatter_add", &[src.shape()], format!("axis {} out of range", self.axis)));
+            return Err(AutodiffError::index(
+                "scatter_add",
+                &[src.shape()],
+                format!("axis {} out of range", self.axis),
+            ));
         }
         shape[self.axis] = self.dim_size;
-        check_index("scatter_add", &shape, self.index.shape(), self.axis, self.dim_size, &self.index)?;
+        check_index(
+            "scatter_add",
+            &shape,
+            self.index.shape(),
+            self.axis,
+            self.dim_size,
+            &self.index,
+        )?;
         let mut y = ArrayD::<T>::zeros(IxDyn(&shape));
         scatter_into(&mut y, self.axis, &self.index, src);
         Ok(vec![y])

@@ -19,15 +19,16 @@ pub fn gemv<T: Real>(a: &ArrayView2<T>, x: &ArrayView1<T>) -> Array1<T> {
     let (m, k) = a.dim();
     let mut y = Array1::<T>::zeros(m);
     if let (Some(a_s), Some(x_s)) = (a.as_slice(), x.as_slice()) {
+        if k == 0 {
+            return y;
+        }
         y.as_slice_mut()
             .expect("fresh")
             .par_chunks_mut(ROW_BLOCK)
             .enumerate()
             .for_each(|(blk, ys)| {
-                for (r, yv) in ys.iter_mut().enumerate() {
-                    let row = &a_s[(blk * ROW_BLOCK + r) * k..(blk * ROW_BLOCK + r + 1) * k];
-                    *yv = dot_slice(row, x_s);
-                }
+                let rows = &a_s[blk * ROW_BLOCK * k..(blk * ROW_BLOCK + ys.len()) * k];
+                dispatch_gemv_rows(rows, x_s, ys);
             });
     } else {
         for (yv, row) in y.iter_mut().zip(a.rows()) {
@@ -42,18 +43,19 @@ pub fn gemv<T: Real>(a: &ArrayView2<T>, x: &ArrayView1<T>) -> Array1<T> {
 pub fn gemv_t<T: Real>(a: &ArrayView2<T>, g: &ArrayView1<T>) -> Array1<T> {
     let (m, k) = a.dim();
     if let (Some(a_s), Some(g_s)) = (a.as_slice(), g.as_slice()) {
+        if k == 0 {
+            return Array1::zeros(0);
+        }
         let partials: Vec<Vec<T>> = (0..m.div_ceil(ROW_BLOCK))
             .into_par_iter()
             .map(|blk| {
                 let mut acc = vec![T::zero(); k];
                 let r1 = ((blk + 1) * ROW_BLOCK).min(m);
-                for r in blk * ROW_BLOCK..r1 {
-                    let gr = g_s[r];
-                    let row = &a_s[r * k..(r + 1) * k];
-                    for (o, &v) in acc.iter_mut().zip(row) {
-                        *o += gr * v;
-                    }
-                }
+                dispatch_axpy_rows(
+                    &a_s[blk * ROW_BLOCK * k..r1 * k],
+                    &g_s[blk * ROW_BLOCK..r1],
+                    &mut acc,
+                );
                 acc
             })
             .collect();
@@ -69,22 +71,81 @@ pub fn gemv_t<T: Real>(a: &ArrayView2<T>, g: &ArrayView1<T>) -> Array1<T> {
     }
 }
 
-#[inline]
+/// Dot product in a fixed order: 16 interleaved partial sums (vectorisable), added pairwise,
+/// then the tail.
+#[inline(always)]
 fn dot_slice<T: Real>(a: &[T], b: &[T]) -> T {
-    // Four independent accumulators let the compiler vectorise; fixed order, deterministic.
-    let mut acc = [T::zero(); 4];
-    let chunks = a.len() / 4;
-    for i in 0..chunks {
-        for j in 0..4 {
-            acc[j] += a[4 * i + j] * b[4 * i + j];
+    let mut acc = [T::zero(); 16];
+    let (ca, cb) = (a.chunks_exact(16), b.chunks_exact(16));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for j in 0..16 {
+            acc[j] += x[j] * y[j];
         }
     }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for i in chunks * 4..a.len() {
-        s += a[i] * b[i];
+    let mut w = 16;
+    while w > 1 {
+        w /= 2;
+        for j in 0..w {
+            acc[j] += acc[j + w];
+        }
     }
-    s
+    ra.iter().zip(rb).fold(acc[0], |s, (&x, &y)| s + x * y)
 }
+
+/// `ys[r] = rows[r] . x` for consecutive rows of length `x.len()`.
+#[inline(always)]
+fn gemv_rows<T: Real>(rows: &[T], x: &[T], ys: &mut [T]) {
+    for (yv, row) in ys.iter_mut().zip(rows.chunks_exact(x.len())) {
+        *yv = dot_slice(row, x);
+    }
+}
+
+/// `acc += sum_r g[r] rows[r]`, four rows at a time (fixed order).
+#[inline(always)]
+fn axpy_rows<T: Real>(rows: &[T], g: &[T], acc: &mut [T]) {
+    let k = acc.len();
+    let mut quads = rows.chunks_exact(4 * k);
+    let mut gq = g.chunks_exact(4);
+    for (q, gs) in (&mut quads).zip(&mut gq) {
+        let (r0, rest) = q.split_at(k);
+        let (r1, rest) = rest.split_at(k);
+        let (r2, r3) = rest.split_at(k);
+        let (g0, g1, g2, g3) = (gs[0], gs[1], gs[2], gs[3]);
+        for j in 0..k {
+            acc[j] += (g0 * r0[j] + g1 * r1[j]) + (g2 * r2[j] + g3 * r3[j]);
+        }
+    }
+    for (row, &gr) in quads.remainder().chunks_exact(k).zip(gq.remainder()) {
+        for (o, &v) in acc.iter_mut().zip(row) {
+            *o += gr * v;
+        }
+    }
+}
+
+/// Runs `f` compiled for AVX2 + FMA when the CPU has them (the generic loops above are
+/// inlined into it and vectorise at that width), else for the baseline target.
+macro_rules! dispatch {
+    ($name:ident, $body:ident, ($($a:ident: $ta:ty),*)) => {
+        fn $name<T: Real>($($a: $ta),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn wide<T: Real>($($a: $ta),*) {
+                    $body($($a),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU has the features `wide` is compiled for.
+                    return unsafe { wide($($a),*) };
+                }
+            }
+            $body($($a),*)
+        }
+    };
+}
+
+dispatch!(dispatch_gemv_rows, gemv_rows, (rows: &[T], x: &[T], ys: &mut [T]));
+dispatch!(dispatch_axpy_rows, axpy_rows, (rows: &[T], g: &[T], acc: &mut [T]));
 
 fn mm<T: Real>(a: &ArrayView2<T>, b: &ArrayView2<T>) -> Array2<T> {
     let mut c = Array2::<T>::zeros((a.nrows(), b.ncols()));
@@ -117,7 +178,11 @@ pub fn matmul_shape(a: &[usize], b: &[usize]) -> Result<Vec<usize>> {
             Ok(vec![a[0].max(b[0]), a[1], b[2]])
         }
         (3, 2) if a[2] == b[0] => Ok(vec![a[0], a[1], b[1]]),
-        (1..=3, 1..=3) => Err(mm_err(a, b, "inner dimensions differ or batch sizes do not broadcast")),
+        (1..=3, 1..=3) => Err(mm_err(
+            a,
+            b,
+            "inner dimensions differ or batch sizes do not broadcast",
+        )),
         _ => Err(mm_err(a, b, "matmul takes 1-, 2- or 3-dimensional inputs")),
     }
 }
@@ -146,7 +211,10 @@ impl<T: Real> Op<T> for MatMulOp {
                     };
                     let ai = ai.into_dimensionality::<Ix2>().expect("2-d");
                     let bi = bi.into_dimensionality::<Ix2>().expect("2-d");
-                    let mut yi = y.index_axis_mut(Axis(0), i).into_dimensionality::<Ix2>().expect("2-d");
+                    let mut yi = y
+                        .index_axis_mut(Axis(0), i)
+                        .into_dimensionality::<Ix2>()
+                        .expect("2-d");
                     general_mat_mul(T::one(), &ai, &bi, T::zero(), &mut yi);
                 }
                 y
@@ -192,8 +260,15 @@ impl<T: Real> Op<T> for MatMulOp {
                 let mut gb = nb.then(|| ArrayD::<T>::zeros(b.raw_dim()));
                 for i in 0..g.shape()[0] {
                     let ia = if a.shape()[0] == 1 { 0 } else { i };
-                    let ib = if b.ndim() == 3 && b.shape()[0] != 1 { i } else { 0 };
-                    let ai = a.index_axis(Axis(0), ia).into_dimensionality::<Ix2>().expect("2-d");
+                    let ib = if b.ndim() == 3 && b.shape()[0] != 1 {
+                        i
+                    } else {
+                        0
+                    };
+                    let ai = a
+                        .index_axis(Axis(0), ia)
+                        .into_dimensionality::<Ix2>()
+                        .expect("2-d");
                     let bi = if b.ndim() == 3 {
                         b.index_axis(Axis(0), ib)
                     } else {
@@ -201,14 +276,23 @@ impl<T: Real> Op<T> for MatMulOp {
                     }
                     .into_dimensionality::<Ix2>()
                     .expect("2-d");
-                    let gi = g.index_axis(Axis(0), i).into_dimensionality::<Ix2>().expect("2-d");
+                    let gi = g
+                        .index_axis(Axis(0), i)
+                        .into_dimensionality::<Ix2>()
+                        .expect("2-d");
                     if let Some(ga) = ga.as_mut() {
-                        let mut t = ga.index_axis_mut(Axis(0), ia).into_dimensionality::<Ix2>().expect("2-d");
+                        let mut t = ga
+                            .index_axis_mut(Axis(0), ia)
+                            .into_dimensionality::<Ix2>()
+                            .expect("2-d");
                         general_mat_mul(T::one(), &gi, &bi.t(), T::one(), &mut t);
                     }
                     if let Some(gb) = gb.as_mut() {
                         if b.ndim() == 3 {
-                            let mut t = gb.index_axis_mut(Axis(0), ib).into_dimensionality::<Ix2>().expect("2-d");
+                            let mut t = gb
+                                .index_axis_mut(Axis(0), ib)
+                                .into_dimensionality::<Ix2>()
+                                .expect("2-d");
                             general_mat_mul(T::one(), &ai.t(), &gi, T::one(), &mut t);
                         } else {
                             let mut t = gb.view_mut().into_dimensionality::<Ix2>().expect("2-d");

@@ -14,7 +14,11 @@ pub fn check_axes(op: &'static str, shape: &[usize], axes: &[usize]) -> Result<V
     a.sort_unstable();
     for w in a.windows(2) {
         if w[0] == w[1] && w[0] != usize::MAX {
-            return Err(AutodiffError::index(op, &[shape], format!("axis {} repeated", w[0])));
+            return Err(AutodiffError::index(
+                op,
+                &[shape],
+                format!("axis {} repeated", w[0]),
+            ));
         }
     }
     if let Some(&bad) = a.iter().find(|&&x| x >= shape.len()) {
@@ -94,8 +98,12 @@ impl<T: Real> Op<T> for SumOp {
         let count: usize = self.resolved.iter().map(|&a| x.shape()[a]).product();
         let mut y = if self.resolved.len() == x.ndim() {
             let s = scalar(sum_all_det(x));
-            s.into_shape_with_order(IxDyn(&reduced_shape(x.shape(), &self.resolved, self.keepdim)))
-                .expect("one element")
+            s.into_shape_with_order(IxDyn(&reduced_shape(
+                x.shape(),
+                &self.resolved,
+                self.keepdim,
+            )))
+            .expect("one element")
         } else {
             let mut y = x.clone();
             for &a in self.resolved.iter().rev() {
@@ -132,6 +140,11 @@ impl<T: Real> Op<T> for SumOp {
         } else {
             T::one()
         };
+        if g.len() == 1 {
+            // A full reduction: the gradient is one value everywhere.
+            let v = *g.iter().next().expect("one element") * scale;
+            return Ok(vec![Some(ArrayD::from_elem(IxDyn(shape), v))]);
+        }
         let gb = g.broadcast(IxDyn(shape)).expect("keepdim broadcasts");
         Ok(vec![Some(gb.mapv(|v| v * scale))])
     }
@@ -166,7 +179,11 @@ impl<T: Real> Op<T> for MaxOp {
         let x = inputs[0];
         check_axes("max", x.shape(), &[self.axis])?;
         if x.shape()[self.axis] == 0 {
-            return Err(AutodiffError::shape("max", &[x.shape()], "max over an empty axis"));
+            return Err(AutodiffError::shape(
+                "max",
+                &[x.shape()],
+                "max over an empty axis",
+            ));
         }
         let ax = Axis(self.axis);
         let mut idx = ArrayD::<usize>::zeros(IxDyn(&reduced_shape(x.shape(), &[self.axis], false)));
@@ -234,10 +251,13 @@ impl<T: Real> Op<T> for LogSumExpOp {
         let mut y = ArrayD::<T>::zeros(IxDyn(&reduced_shape(x.shape(), &[self.axis], false)));
         Zip::from(&mut y).and(x.lanes(ax)).for_each(|y, lane| {
             // A NaN-propagating maximum (`T::max` would skip NaN and let +inf hide it).
-            let m = lane
-                .iter()
-                .copied()
-                .fold(T::neg_infinity(), |a, b| if b > a || b.is_nan() { b } else { a });
+            let m = lane.iter().copied().fold(T::neg_infinity(), |a, b| {
+                if b > a || b.is_nan() {
+                    b
+                } else {
+                    a
+                }
+            });
             *y = if m.is_infinite() {
                 m
             } else {
@@ -272,7 +292,11 @@ impl<T: Real> Op<T> for LogSumExpOp {
             .for_each(|mut out, lane, &y, &g| {
                 for (o, &v) in out.iter_mut().zip(lane.iter()) {
                     // softmax weight; zero where y = -inf (all inputs -inf)
-                    *o = if y.is_infinite() { T::zero() } else { g * (v - y).exp() };
+                    *o = if y.is_infinite() {
+                        T::zero()
+                    } else {
+                        g * (v - y).exp()
+                    };
                 }
             });
         Ok(vec![Some(gi)])

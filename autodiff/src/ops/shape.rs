@@ -52,12 +52,20 @@ pub fn check_perm(op: &'static str, shape: &[usize], perm: &[usize]) -> Result<(
         return Err(AutodiffError::index(
             op,
             &[shape],
-            format!("permutation {perm:?} has {} axes, the input {}", perm.len(), shape.len()),
+            format!(
+                "permutation {perm:?} has {} axes, the input {}",
+                perm.len(),
+                shape.len()
+            ),
         ));
     }
     for &p in perm {
         if p >= shape.len() || seen[p] {
-            return Err(AutodiffError::index(op, &[shape], format!("{perm:?} is not a permutation")));
+            return Err(AutodiffError::index(
+                op,
+                &[shape],
+                format!("{perm:?} is not a permutation"),
+            ));
         }
         seen[p] = true;
     }
@@ -71,7 +79,11 @@ impl<T: Real> Op<T> for PermuteOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let x = inputs[0];
         check_perm("permute", x.shape(), &self.0)?;
-        let y = x.view().permuted_axes(IxDyn(&self.0)).as_standard_layout().into_owned();
+        let y = x
+            .view()
+            .permuted_axes(IxDyn(&self.0))
+            .as_standard_layout()
+            .into_owned();
         Ok(vec![y])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
@@ -141,11 +153,21 @@ impl<T: Real> Op<T> for ConcatOp {
         }
         let views: Vec<_> = inputs.iter().map(|t| t.view()).collect();
         if self.0 >= inputs[0].ndim() {
-            return Err(AutodiffError::index("concat", &shapes, format!("axis {} out of range", self.0)));
+            return Err(AutodiffError::index(
+                "concat",
+                &shapes,
+                format!("axis {} out of range", self.0),
+            ));
         }
         ndarray::concatenate(Axis(self.0), &views)
             .map(|y| vec![into_standard(y)])
-            .map_err(|_| AutodiffError::shape("concat", &shapes, format!("shapes differ off axis {}", self.0)))
+            .map_err(|_| {
+                AutodiffError::shape(
+                    "concat",
+                    &shapes,
+                    format!("shapes differ off axis {}", self.0),
+                )
+            })
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let g = ctx.grad_outputs[0];
@@ -156,7 +178,10 @@ impl<T: Real> Op<T> for ConcatOp {
             .zip(ctx.needs_grad)
             .map(|(x, &need)| {
                 let n = x.shape()[self.0];
-                let r = need.then(|| g.slice_axis(Axis(self.0), Slice::from(at..at + n)).to_owned());
+                let r = need.then(|| {
+                    g.slice_axis(Axis(self.0), Slice::from(at..at + n))
+                        .to_owned()
+                });
                 at += n;
                 r
             })
@@ -177,7 +202,11 @@ impl<T: Real> Op<T> for StackOp {
             return Err(AutodiffError::invalid("stack", "no inputs"));
         }
         if self.0 > inputs[0].ndim() {
-            return Err(AutodiffError::index("stack", &shapes, format!("axis {} out of range", self.0)));
+            return Err(AutodiffError::index(
+                "stack",
+                &shapes,
+                format!("axis {} out of range", self.0),
+            ));
         }
         let views: Vec<_> = inputs.iter().map(|t| t.view()).collect();
         ndarray::stack(Axis(self.0), &views)
@@ -212,10 +241,14 @@ impl<T: Real> Op<T> for BroadcastToOp {
                 "input does not broadcast to the target shape",
             ));
         }
-        Ok(vec![x.broadcast(IxDyn(&self.0)).expect("checked").to_owned()])
+        Ok(vec![x
+            .broadcast(IxDyn(&self.0))
+            .expect("checked")
+            .to_owned()])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
-        Ok(vec![ctx.needs_grad[0]
-            .then(|| sum_to_shape(ctx.grad_outputs[0].clone(), ctx.inputs[0].shape()))])
+        Ok(vec![ctx.needs_grad[0].then(|| {
+            sum_to_shape(ctx.grad_outputs[0].clone(), ctx.inputs[0].shape())
+        })])
     }
 }

@@ -43,7 +43,11 @@ impl<T: Real> Op<T> for CrossOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let (a, b) = (inputs[0], inputs[1]);
         if a.shape().last() != Some(&3) || b.shape().last() != Some(&3) {
-            return Err(AutodiffError::shape("cross", &[a.shape(), b.shape()], "last axis must have size 3"));
+            return Err(AutodiffError::shape(
+                "cross",
+                &[a.shape(), b.shape()],
+                "last axis must have size 3",
+            ));
         }
         let shape = broadcast_shapes("cross", a.shape(), b.shape())?;
         Ok(vec![lanes_cross(a, b, &shape)])
@@ -72,14 +76,22 @@ impl<T: Real> Op<T> for NormalizeOp<T> {
     }
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let x = inputs[0];
-        if !(self.eps > T::zero()) {
+        if self.eps.is_nan() || self.eps <= T::zero() {
             return Err(AutodiffError::invalid(
                 "normalize",
-                format!("eps must be > 0, got {} (input shape {:?})", self.eps, x.shape()),
+                format!(
+                    "eps must be > 0, got {} (input shape {:?})",
+                    self.eps,
+                    x.shape()
+                ),
             ));
         }
         if x.ndim() == 0 {
-            return Err(AutodiffError::shape("normalize", &[x.shape()], "needs at least one axis"));
+            return Err(AutodiffError::shape(
+                "normalize",
+                &[x.shape()],
+                "needs at least one axis",
+            ));
         }
         let ax = Axis(x.ndim() - 1);
         let mut y = x.to_owned();

@@ -323,7 +323,8 @@ fn face_regions(faces: &[[usize; 3]], c: &Contours) -> Result<Vec<u16>> {
         .position(|t| t.contains(&13) && t.contains(&14))
         .ok_or_else(|| invalid("no triangle holds both inner-lip vertices 13 and 14"))?;
     fill(&outer, seed, 1, 150)?;
-    let _ = seed_between(&inner, &LIPS_UPPER_INNER, &LIPS_LOWER_INNER)?;
+    // (The inner-lip contour must be spanned by triangles, as for the eyes.)
+    seed_between(&inner, &LIPS_UPPER_INNER, &LIPS_LOWER_INNER)?;
     fill(&inner, seed, 2, 40)?;
     for s in 0..2 {
         let lp = closed(&c.eye_lower[s], &c.eye_upper[s]);
@@ -398,9 +399,9 @@ impl Ctx {
         let n = self.n();
         let mut fixed: Vec<Option<[f64; 1]>> = vec![None; n];
         let corners = [61usize, 291, 78, 308];
-        for v in 0..n {
-            if self.p[v][1] > -12.0 {
-                fixed[v] = Some([0.0]);
+        for (f, q) in fixed.iter_mut().zip(&self.p) {
+            if q[1] > -12.0 {
+                *f = Some([0.0]);
             }
         }
         for &v in &self.c.oval {
@@ -426,9 +427,9 @@ impl Ctx {
         let n = self.n();
         let mut fixed: Vec<Option<[f64; 1]>> = vec![None; n];
         let corners = [61usize, 291, 78, 308];
-        for v in 0..n {
-            if self.p[v][1] > -12.0 {
-                fixed[v] = Some([0.0]);
+        for (f, q) in fixed.iter_mut().zip(&self.p) {
+            if q[1] > -12.0 {
+                *f = Some([0.0]);
             }
         }
         for &v in &self.c.oval {
@@ -664,7 +665,7 @@ fn identity_fields(x: &Ctx) -> Vec<Field> {
     );
     push(
         "cheek_hollow",
-        x.sided(LOWER_CHEEK, 20.0, false, |_, s| [-1.0 * s, 0.0, -3.0]),
+        x.sided(LOWER_CHEEK, 20.0, false, |_, s| [-s, 0.0, -3.0]),
     );
     push(
         "cheekbone_asym",

@@ -182,23 +182,26 @@ fn cholesky_solve<const K: usize>(a: &mut [f64], n: usize, mut b: Vec<[f64; K]>)
             a[i * n + j] = s / d;
         }
     }
+    // Forward then backward substitution, K right-hand sides at once.
     for i in 0..n {
-        for k in 0..K {
-            let mut s = b[i][k];
-            for j in 0..i {
-                s -= a[i * n + j] * b[j][k];
+        let mut s = b[i];
+        for j in 0..i {
+            let l = a[i * n + j];
+            for (sk, bk) in s.iter_mut().zip(b[j]) {
+                *sk -= l * bk;
             }
-            b[i][k] = s / a[i * n + i];
         }
+        b[i] = s.map(|x| x / a[i * n + i]);
     }
     for i in (0..n).rev() {
-        for k in 0..K {
-            let mut s = b[i][k];
-            for j in i + 1..n {
-                s -= a[j * n + i] * b[j][k];
+        let mut s = b[i];
+        for j in i + 1..n {
+            let l = a[j * n + i];
+            for (sk, bk) in s.iter_mut().zip(b[j]) {
+                *sk -= l * bk;
             }
-            b[i][k] = s / a[i * n + i];
         }
+        b[i] = s.map(|x| x / a[i * n + i]);
     }
     b
 }
@@ -268,7 +271,8 @@ pub fn gram_schmidt(
             }
         }
         let n = dot(&v, &v).sqrt();
-        if !(n > 1e-6 * dot(f, f).sqrt()) {
+        // (Written so that a NaN norm also fails.)
+        if n.is_nan() || n <= 1e-6 * dot(f, f).sqrt() {
             return Err(k);
         }
         for x in v.iter_mut() {

@@ -56,7 +56,11 @@ impl Rect {
 ///
 /// `X = x W_img / 2 + w (W_img / 2 - 1/2)`, `Y = -y H_img / 2 + w (H_img / 2 - 1/2)`.
 #[inline]
-pub(crate) fn to_screen<T: Real>(c: &[T; 4], width: usize, height: usize) -> ([f64; 4], [f64; 2], u8) {
+pub(crate) fn to_screen<T: Real>(
+    c: &[T; 4],
+    width: usize,
+    height: usize,
+) -> ([f64; 4], [f64; 2], u8) {
     let [x, y, z, w] = c.map(|v| v.to_f64c());
     let hw = width as f64 * 0.5;
     let hh = height as f64 * 0.5;
@@ -226,8 +230,12 @@ pub(crate) fn screen_bounds(
         if n == 0 {
             return None;
         }
-        let (mut a0, mut a1, mut b0, mut b1) =
-            (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+        let (mut a0, mut a1, mut b0, mut b1) = (
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        );
         for p in &poly[..n] {
             if !(p[2] > 0.0) {
                 return Some(full);

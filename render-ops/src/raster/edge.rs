@@ -56,10 +56,7 @@ struct Terms {
 
 impl Terms {
     fn new() -> Self {
-        Self {
-            t: [0.0; 24],
-            n: 0,
-        }
+        Self { t: [0.0; 24], n: 0 }
     }
     /// Adds `a * b` exactly (2 terms).
     fn prod2(&mut self, a: f64, b: f64) {
@@ -198,7 +195,11 @@ fn edge_coeffs(v: &[[f64; 4]; 3], face: &[u32; 3], j: usize, k: usize) -> ([f64;
     let c2 = l[1] * h[0];
     (
         [s * (a1 - a2), s * (b1 - b2), s * (c1 - c2)],
-        [a1.abs() + a2.abs(), b1.abs() + b2.abs(), c1.abs() + c2.abs()],
+        [
+            a1.abs() + a2.abs(),
+            b1.abs() + b2.abs(),
+            c1.abs() + c2.abs(),
+        ],
     )
 }
 
@@ -303,7 +304,22 @@ impl Setup {
                 dy[i] = self.b[i] * s;
             }
         }
-        (bary.map(sat), sat(vd), dx.map(sat), dy.map(sat))
+        let t = (
+            bary.map(T::from_f64c),
+            T::from_f64c(vd),
+            dx.map(T::from_f64c),
+            dy.map(T::from_f64c),
+        );
+        // A sum is finite only if every term is (and rarely overflows when they are).
+        let mut sum = t.1;
+        for i in 0..3 {
+            sum = sum + t.0[i] + t.2[i] + t.3[i];
+        }
+        if sum.is_finite() {
+            t
+        } else {
+            (bary.map(sat), sat(vd), dx.map(sat), dy.map(sat))
+        }
     }
 
     /// Row part `b_i row + c_i` of the edge functions.
@@ -331,12 +347,15 @@ impl Setup {
     #[cold]
     #[inline(never)]
     pub fn covered_exact(&self, verts: &[[f64; 4]], e: &[f64; 3], col: f64, row: f64) -> bool {
-        for i in 0..3 {
-            if e[i] > self.bnd[i] {
+        for (i, (&ei, &bi)) in e.iter().zip(&self.bnd).enumerate() {
+            if ei > bi {
                 continue;
             }
             let (lo, hi, fl) = canonical(&self.face, i);
-            let (l, h) = (&verts[self.face[lo] as usize], &verts[self.face[hi] as usize]);
+            let (l, h) = (
+                &verts[self.face[lo] as usize],
+                &verts[self.face[hi] as usize],
+            );
             let sigma = (fl * self.sign) as i32;
             let s = sigma * exact_edge_sign(l, h, col, row);
             if s < 0 {
@@ -386,7 +405,10 @@ mod tests {
         let l = [0.1, 0.1, 1.0, 0.0];
         let h = [0.3, 0.3, 1.0, 0.0];
         assert_eq!(exact_edge_sign(&l, &h, 7.0, 7.0), 0);
-        assert_eq!(exact_edge_sign(&l, &h, 7.0, 8.0), -exact_edge_sign(&l, &h, 8.0, 7.0));
+        assert_eq!(
+            exact_edge_sign(&l, &h, 7.0, 8.0),
+            -exact_edge_sign(&l, &h, 8.0, 7.0)
+        );
         assert_eq!(exact_det_sign(&[l, h, [5.0, 5.0, 2.0, 0.0]]), 0);
     }
 }

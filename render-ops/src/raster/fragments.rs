@@ -6,6 +6,7 @@ use autodiff::Real;
 use rayon::prelude::*;
 
 use super::bin::Bins;
+use super::clip::Rect;
 use super::edge::Setup;
 use super::{RasterError, RasterSettings, TILE_SIZE};
 
@@ -197,38 +198,76 @@ impl<T: Real> Fragments<T> {
     }
 }
 
-/// Fragments of one tile in tile-local row-major pixel order, before their values are computed.
+/// The fragments of one tile, packed in tile-local row-major pixel order (nearest first within a
+/// pixel) as (setup index, depth), before their values are computed (during assembly, straight
+/// into the final arrays).
 pub(crate) struct TileOut<T> {
     /// Setups (with face index) of the faces that own fragments here.
     pub setups: Vec<(Setup, u32)>,
-    /// Setup index and depth of each fragment.
-    pub fsetup: Vec<u32>,
+    pub idx: Vec<u32>,
     pub depth: Vec<T>,
     /// Fragment count per local pixel (`local_row * TILE_SIZE + local_col`); empty if none.
     pub counts: Vec<u16>,
-    /// `row_start[lr]..row_start[lr + 1]` are the fragments of local row `lr`.
-    pub row_start: Vec<u32>,
+    /// Number of fragments in each local row.
+    pub row_len: [u32; TILE_SIZE],
 }
 
-impl<T> TileOut<T> {
+impl<T: Real> TileOut<T> {
     pub fn empty() -> Self {
         Self {
             setups: Vec::new(),
-            fsetup: Vec::new(),
+            idx: Vec::new(),
             depth: Vec::new(),
             counts: Vec::new(),
-            row_start: Vec::new(),
+            row_len: [0; TILE_SIZE],
         }
     }
 
-    /// Fragments in local row `lr`.
-    #[inline]
-    fn row_len(&self, lr: usize) -> usize {
-        if self.fsetup.is_empty() {
-            0
-        } else {
-            (self.row_start[lr + 1] - self.row_start[lr]) as usize
+    /// Packs a dense K-buffer (`k` slots per local pixel, `+inf` depth when empty).
+    pub fn pack(
+        depth: &[f64],
+        idx: &[u32],
+        setups: Vec<(Setup, u32)>,
+        rect: &Rect,
+        k: usize,
+    ) -> Self {
+        let n = (rect.c1 - rect.c0) as usize + 1;
+        let rows = (rect.r1 - rect.r0) as usize + 1;
+        let mut out = Self::empty();
+        let total = (0..rows)
+            .map(|lr| {
+                let p = lr * TILE_SIZE * k;
+                depth[p..p + n * k].iter().filter(|d| **d <= 1.0).count()
+            })
+            .sum::<usize>();
+        if total == 0 {
+            return out;
         }
+        out.setups = setups;
+        out.idx.reserve_exact(total);
+        out.depth.reserve_exact(total);
+        out.counts = vec![0; TILE_SIZE * TILE_SIZE];
+        for lr in 0..rows {
+            let p = lr * TILE_SIZE;
+            let slots = p * k..(p + n) * k;
+            let before = out.idx.len();
+            for ((cnt, dk), ik) in out.counts[p..p + n]
+                .iter_mut()
+                .zip(depth[slots.clone()].chunks_exact(k))
+                .zip(idx[slots].chunks_exact(k))
+            {
+                for (&d, &i) in dk.iter().zip(ik) {
+                    if d > 1.0 {
+                        break;
+                    }
+                    out.idx.push(i);
+                    out.depth.push(T::from_f64c(d));
+                    *cnt += 1;
+                }
+            }
+            out.row_len[lr] = (out.idx.len() - before) as u32;
+        }
+        out
     }
 }
 
@@ -268,7 +307,10 @@ pub(crate) fn assemble<T: Real>(
     let row_frags: Vec<usize> = (0..height)
         .map(|r| {
             let (ty, lr) = (r / TILE_SIZE, r % TILE_SIZE);
-            tiles[ty * tx_n..(ty + 1) * tx_n].iter().map(|t| t.row_len(lr)).sum()
+            tiles[ty * tx_n..(ty + 1) * tx_n]
+                .iter()
+                .map(|t| t.row_len[lr] as usize)
+                .sum::<usize>()
         })
         .collect();
     let total: usize = row_frags.iter().sum();
@@ -328,17 +370,20 @@ pub(crate) fn assemble<T: Real>(
             let c0 = tx * TILE_SIZE;
             let c1 = (c0 + TILE_SIZE).min(width);
             let offs = &mut ro.offsets[c0..c1];
-            if tile.row_len(lr) == 0 {
+            if tile.row_len[lr] == 0 {
                 offs.fill((ro.base + pos) as u32);
                 continue;
             }
-            let mut i = tile.row_start[lr] as usize;
+            let mut i = tile.row_len[..lr]
+                .iter()
+                .map(|&n| n as usize)
+                .sum::<usize>();
             let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + (c1 - c0)];
             for (j, (o, &n)) in offs.iter_mut().zip(counts).enumerate() {
                 *o = (ro.base + pos) as u32;
                 let col = (c0 + j) as f64;
                 for _ in 0..n {
-                    let (st, face) = &tile.setups[tile.fsetup[i] as usize];
+                    let (st, face) = &tile.setups[tile.idx[i] as usize];
                     let (bary, vd, dx, dy) = st.values::<T>(col, rf, persp);
                     ro.face[pos] = *face;
                     ro.bary[pos] = bary;

@@ -10,25 +10,20 @@ use super::edge::Setup;
 use super::fragments::{assemble, Fragments, TileOut};
 use super::{validate_inputs, RasterError, RasterSettings, TILE_SIZE};
 
-/// Per-thread tile buffers, reused across tiles.
+/// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
+/// (`local_row * TILE_SIZE + local_col`) of NDC depth (`+inf` when empty) and index into the
+/// tile's setups, nearest first.
 struct Scratch {
-    /// K-buffer: NDC depths (`+inf` when empty) and indices into `setups`, `k` per local pixel,
-    /// nearest first.
     depth: Vec<f64>,
     idx: Vec<u32>,
-    setups: Vec<(Setup, u32)>,
-    /// Scratch for [`pack_tile`].
-    remap: Vec<u32>,
 }
 
 impl Scratch {
     fn new(k: usize) -> Self {
-        let n = TILE_SIZE * TILE_SIZE;
+        let n = TILE_SIZE * TILE_SIZE * k;
         Self {
-            depth: vec![f64::INFINITY; n * k],
-            idx: vec![0; n * k],
-            setups: Vec::new(),
-            remap: Vec::new(),
+            depth: vec![f64::INFINITY; n],
+            idx: vec![0; n],
         }
     }
 }
@@ -89,14 +84,18 @@ pub fn rasterize<T: Real>(
     assemble(tiles, &bins, s)
 }
 
-/// Z-buffers the faces binned to tile `t` and finishes its fragments.
+/// Z-buffers the faces binned to tile `t` and packs the surviving fragments.
 fn raster_tile<T: Real>(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileOut<T> {
     let (s, verts) = (ctx.s, ctx.verts);
     let k = s.faces_per_pixel;
     let rect = ctx.bins.tile_rect(t, s.width, s.height);
+    let mut faces = ctx.bins.tile_faces(t).peekable();
+    if faces.peek().is_none() {
+        return TileOut::empty();
+    }
     sc.depth.fill(f64::INFINITY);
-    sc.setups.clear();
-    for f in ctx.bins.tile_faces(t) {
+    let mut setups = Vec::new();
+    for f in faces {
         let r = ctx.bins.rects[f as usize].intersect(&rect);
         if r.is_empty() {
             continue;
@@ -110,16 +109,17 @@ fn raster_tile<T: Real>(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileOut<T>
         let Some(st) = Setup::new(&v, face, r.c1 as f64, r.r1 as f64) else {
             continue;
         };
-        if z_test_face(&st, &v, &r, &rect, verts, sc, k) {
-            sc.setups.push((st, f));
+        if z_test_face(&st, &v, &r, &rect, verts, sc, setups.len() as u32, k) {
+            setups.push((st, f));
         }
     }
-    pack_tile(&rect, sc, k)
+    TileOut::pack(&sc.depth, &sc.idx, setups, &rect, k)
 }
 
 /// Tests the pixels of `r` (inside tile `rect`) against one face and inserts its fragments into
-/// the K-buffer under local face number `sc.setups.len()`. Returns whether any was inserted.
+/// the K-buffer under local face number `li`. Returns whether any was inserted.
 #[inline]
+#[allow(clippy::too_many_arguments)]
 fn z_test_face(
     st: &Setup,
     v: &[[f64; 4]; 3],
@@ -127,9 +127,9 @@ fn z_test_face(
     rect: &Rect,
     verts: &[[f64; 4]],
     sc: &mut Scratch,
+    li: u32,
     k: usize,
 ) -> bool {
-    let li = sc.setups.len() as u32;
     // NDC depth z/w is affine in screen space: sum_i e_i z_i / sum_i e_i w_i with
     // sum_i e_i w_i = det, i.e. the plane d = dza col + dzb row + dzc. The near and far planes
     // are the per-fragment test -1 <= d <= 1.
@@ -258,7 +258,7 @@ fn test_pixel(
     // Near and far planes; empty K-buffer slots hold +inf. sum e > 0 holds exactly for
     // covered pixels; its f64 value fails only for slivers at the precision limit, whose
     // barycentrics could not be normalised.
-    if !(d >= -1.0 && d <= 1.0 && d < sc.depth[p + k - 1] && e[0] + e[1] + e[2] > 0.0) {
+    if !((-1.0..=1.0).contains(&d) && d < sc.depth[p + k - 1] && e[0] + e[1] + e[2] > 0.0) {
         return false;
     }
     // Insertion keeping earlier (lower-index) faces first among equal depths.
@@ -271,59 +271,6 @@ fn test_pixel(
     sc.depth[i] = d;
     sc.idx[i] = li;
     true
-}
-
-/// Packs the tile's K-buffer: the fragments in tile-local pixel order (setup index and depth),
-/// counts per pixel and per row, and the setups they use. Their output values are computed
-/// during assembly, straight into the final arrays.
-fn pack_tile<T: Real>(rect: &Rect, sc: &mut Scratch, k: usize) -> TileOut<T> {
-    let n = (rect.c1 - rect.c0) as usize + 1;
-    let rows = (rect.r1 - rect.r0) as usize + 1;
-    let mut total = 0;
-    for lr in 0..rows {
-        let p = lr * TILE_SIZE;
-        total += sc.depth[p * k..(p + n) * k].iter().filter(|d| **d <= 1.0).count();
-    }
-    if total == 0 {
-        return TileOut::empty();
-    }
-    let mut out = TileOut {
-        setups: Vec::new(),
-        fsetup: Vec::with_capacity(total),
-        depth: Vec::with_capacity(total),
-        counts: vec![0u16; TILE_SIZE * TILE_SIZE],
-        row_start: vec![0u32; TILE_SIZE + 1],
-    };
-    sc.remap.clear();
-    sc.remap.resize(sc.setups.len(), u32::MAX);
-    for lr in 0..rows {
-        let p = lr * TILE_SIZE;
-        let slots = p * k..(p + n) * k;
-        for ((cnt, dk), ik) in out.counts[p..p + n]
-            .iter_mut()
-            .zip(sc.depth[slots.clone()].chunks_exact(k))
-            .zip(sc.idx[slots].chunks_exact(k))
-        {
-            for (&d, &idx) in dk.iter().zip(ik) {
-                if d > 1.0 {
-                    break;
-                }
-                let m = &mut sc.remap[idx as usize];
-                if *m == u32::MAX {
-                    *m = out.setups.len() as u32;
-                    out.setups.push(sc.setups[idx as usize]);
-                }
-                out.fsetup.push(*m);
-                out.depth.push(T::from_f64c(d));
-                *cnt += 1;
-            }
-        }
-        out.row_start[lr + 1] = out.fsetup.len() as u32;
-    }
-    for lr in rows..TILE_SIZE {
-        out.row_start[lr + 1] = out.fsetup.len() as u32;
-    }
-    out
 }
 
 /// Vector-Jacobian product of [`rasterize`] with the visibility (which face each fragment

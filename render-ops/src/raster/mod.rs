@@ -26,15 +26,26 @@
 //!   perturbation of the pixel centre), so on a closed mesh no pixel centre is covered twice by
 //!   adjacent faces nor missed between them. Zero-area triangles (exactly `det M == 0`) produce no
 //!   fragments.
-//! * **Tiles.** Faces are binned by their (clipped) screen bounding boxes into `32 x 32` pixel
-//!   tiles; tiles are rasterized in parallel with rayon, each keeping the `K` nearest fragments of
-//!   its pixels in fixed-size buffers. Bins list faces in increasing index order, depth ties go to
-//!   the lower face index, and the packed output is assembled in pixel order, so the result is
-//!   bit-identical for any number of threads.
+//! * **Tiles.** Faces are binned by their (clipped) screen bounding boxes, rounded inwards to
+//!   the pixel centres they can contain, into `32 x 32` pixel tiles; tiles are rasterized in
+//!   parallel with rayon. Within a tile each face walks conservative per-row column spans (from
+//!   the edge functions and their error bounds) and only pixels in a span get the exact test, so
+//!   cost grows with covered pixels and faces. Each tile keeps the `K` nearest fragments per pixel
+//!   in a fixed-size per-thread K-buffer and packs them; their barycentrics, depths and
+//!   derivatives are computed during assembly, in parallel over image rows, straight into the
+//!   packed pixel-order output. Bins list faces in increasing index order and depth ties go to the
+//!   lower face index, so the result is bit-identical for any number of threads.
+//! * **Degenerate input.** Fragments whose `f64` `sum(e)` is not positive (slivers at the limit
+//!   of `f64` precision) are dropped; output values beyond the range of `T` are saturated, so
+//!   every fragment value is finite.
 //!
 //! Conventions (see `CONVENTIONS.md`): OpenGL clip space, pixel `(row r, col c)` centred at
 //! `ndc = (2 (c + 0.5) / W - 1, 1 - 2 (r + 0.5) / H)`, row 0 at the top, front faces
 //! counter-clockwise in NDC.
+
+// `!(a <= b)` is used deliberately throughout: it is true for NaN, which must take the
+// conservative branch.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 mod bin;
 mod clip;

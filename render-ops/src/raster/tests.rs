@@ -117,7 +117,14 @@ fn icosphere(n: usize) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
 }
 
 /// OpenGL perspective * look-at (row-major 4x4).
-fn camera(eye: [f64; 3], at: [f64; 3], fovy_deg: f64, aspect: f64, n: f64, fa: f64) -> [[f64; 4]; 4] {
+fn camera(
+    eye: [f64; 3],
+    at: [f64; 3],
+    fovy_deg: f64,
+    aspect: f64,
+    n: f64,
+    fa: f64,
+) -> [[f64; 4]; 4] {
     let fwd = norm3(sub3(at, eye));
     let up = if fwd[1].abs() > 0.99 {
         [0.0, 0.0, 1.0]
@@ -178,7 +185,13 @@ fn pixel_ndc(w: usize, h: usize, p: usize) -> (f64, f64) {
 
 /// Every fragment is finite and, for perspective-correct barycentrics, `sum b_i clip_i` lies on
 /// the pixel's ray with the stored depths (the barycentrics refer to the original triangle).
-fn check_consistent<T: Real>(clip: &[[T; 4]], faces: &[[u32; 3]], fr: &Fragments<T>, s: &RasterSettings, tol: f64) {
+fn check_consistent<T: Real>(
+    clip: &[[T; 4]],
+    faces: &[[u32; 3]],
+    fr: &Fragments<T>,
+    s: &RasterSettings,
+    tol: f64,
+) {
     fr.validate().unwrap();
     assert_eq!(fr.k, s.faces_per_pixel);
     for p in 0..fr.num_pixels() {
@@ -193,7 +206,10 @@ fn check_consistent<T: Real>(clip: &[[T; 4]], faces: &[[u32; 3]], fr: &Fragments
                 .chain([&f.depth, &f.view_depth])
                 .map(|x| x.to_f64c())
                 .collect();
-            assert!(vals.iter().all(|x| x.is_finite()), "non-finite fragment {f:?}");
+            assert!(
+                vals.iter().all(|x| x.is_finite()),
+                "non-finite fragment {f:?}"
+            );
             let d = f.depth.to_f64c();
             assert!((-1.0..=1.0).contains(&d), "depth {d} out of range");
             assert!(d >= last, "fragments not sorted by depth");
@@ -217,9 +233,15 @@ fn check_consistent<T: Real>(clip: &[[T; 4]], faces: &[[u32; 3]], fr: &Fragments
             let w = q[3];
             assert!(w > 0.0);
             let t = tol * scale.max(1.0) / w;
-            assert!((q[0] / w - nx).abs() < t && (q[1] / w - ny).abs() < t, "off the ray {q:?} vs {nx},{ny}");
+            assert!(
+                (q[0] / w - nx).abs() < t && (q[1] / w - ny).abs() < t,
+                "off the ray {q:?} vs {nx},{ny}"
+            );
             assert!((q[2] / w - d).abs() < t, "depth {} vs {d}", q[2] / w);
-            assert!((w - f.view_depth.to_f64c()).abs() < tol * scale.max(1.0), "view depth");
+            assert!(
+                (w - f.view_depth.to_f64c()).abs() < tol * scale.max(1.0),
+                "view depth"
+            );
         }
     }
 }
@@ -230,7 +252,14 @@ fn sphere_watertight<T: Real>() {
     let (v, f) = icosphere(4);
     assert_eq!(f.len(), 5120);
     let (w, h) = (160, 128);
-    let m = camera([0.0, 0.0, 3.0], [0.0; 3], 48.9, w as f64 / h as f64, 0.1, 100.0);
+    let m = camera(
+        [0.0, 0.0, 3.0],
+        [0.0; 3],
+        48.9,
+        w as f64 / h as f64,
+        0.1,
+        100.0,
+    );
     let clip = project::<T>(&m, &v);
     // Inscribed radius of the polyhedron: distance from the centre to the nearest face plane.
     let r_in = f
@@ -240,7 +269,15 @@ fn sphere_watertight<T: Real>() {
             dot3(norm3(cross3(sub3(b, a), sub3(c, a))), a)
         })
         .fold(f64::INFINITY, f64::min);
-    let culled = rasterize(&clip, &f, &RasterSettings { cull_backfaces: true, ..settings(w, h, 4) }).unwrap();
+    let culled = rasterize(
+        &clip,
+        &f,
+        &RasterSettings {
+            cull_backfaces: true,
+            ..settings(w, h, 4)
+        },
+    )
+    .unwrap();
     let both = rasterize(&clip, &f, &settings(w, h, 4)).unwrap();
     let (cc, cb) = (counts(&culled), counts(&both));
     let tan = (48.9f64.to_radians() / 2.0).tan();
@@ -251,9 +288,19 @@ fn sphere_watertight<T: Real>() {
         // Distance from the sphere centre (0, 0, -3) in view space to the pixel's ray.
         let dist = cross3(d, [0.0, 0.0, -3.0]);
         let dist = dot3(dist, dist).sqrt() / dot3(d, d).sqrt();
-        assert!(cc[p] <= 1, "pixel {p} covered {} times by front faces", cc[p]);
+        assert!(
+            cc[p] <= 1,
+            "pixel {p} covered {} times by front faces",
+            cc[p]
+        );
         // A convex closed mesh: front and back layers cover exactly the same pixels.
-        assert_eq!(cb[p], 2 * cc[p], "pixel {p}: {} fragments, {} front", cb[p], cc[p]);
+        assert_eq!(
+            cb[p],
+            2 * cc[p],
+            "pixel {p}: {} fragments, {} front",
+            cb[p],
+            cc[p]
+        );
         if dist < r_in * 0.995 {
             assert_eq!(cc[p], 1, "hole at interior pixel {p}");
             inside += 1;
@@ -263,13 +310,29 @@ fn sphere_watertight<T: Real>() {
             boundary += 1;
         }
         if cb[p] == 2 {
-            let (a, b) = (both.get(both.pixel_range(p).start), both.get(both.pixel_range(p).start + 1));
-            assert_eq!(a.face, culled.nearest(p).unwrap().face, "nearest is the front face");
+            let (a, b) = (
+                both.get(both.pixel_range(p).start),
+                both.get(both.pixel_range(p).start + 1),
+            );
+            assert_eq!(
+                a.face,
+                culled.nearest(p).unwrap().face,
+                "nearest is the front face"
+            );
             assert!(a.depth < b.depth);
         }
     }
-    assert!(inside > 5000 && boundary < inside / 5, "inside {inside} boundary {boundary}");
-    check_consistent(&clip, &f, &both, &settings(w, h, 4), if T::NAME == "f32" { 2e-3 } else { 1e-8 });
+    assert!(
+        inside > 5000 && boundary < inside / 5,
+        "inside {inside} boundary {boundary}"
+    );
+    check_consistent(
+        &clip,
+        &f,
+        &both,
+        &settings(w, h, 4),
+        if T::NAME == "f32" { 2e-3 } else { 1e-8 },
+    );
     // K = 2 gives exactly front and back for interior pixels.
     let k2 = rasterize(&clip, &f, &settings(w, h, 2)).unwrap();
     assert_eq!(counts(&k2), cb);
@@ -328,11 +391,28 @@ fn grid_watertight<T: Real>() {
         assert_eq!(faces.len(), 5000);
         let s = settings(200, 150, 4);
         let fr = rasterize(&clip, &faces, &s).unwrap();
-        assert!(counts(&fr).iter().all(|&c| c == 1), "grid not covered exactly once");
+        assert!(
+            counts(&fr).iter().all(|&c| c == 1),
+            "grid not covered exactly once"
+        );
         assert_eq!(fr.covered_pixels(), 200 * 150);
-        check_consistent(&clip, &faces, &fr, &s, if T::NAME == "f32" { 2e-3 } else { 1e-8 });
+        check_consistent(
+            &clip,
+            &faces,
+            &fr,
+            &s,
+            if T::NAME == "f32" { 2e-3 } else { 1e-8 },
+        );
         // Mirrored faces are clockwise (back faces) and culled.
-        let culled = rasterize(&clip, &faces, &RasterSettings { cull_backfaces: true, ..s }).unwrap();
+        let culled = rasterize(
+            &clip,
+            &faces,
+            &RasterSettings {
+                cull_backfaces: true,
+                ..s
+            },
+        )
+        .unwrap();
         assert_eq!(culled.len(), if mirror { 0 } else { 200 * 150 });
     }
 }
@@ -382,8 +462,17 @@ fn pixel_aligned<T: Real>() {
     }
     let s = settings(w, h, 4);
     let fr = rasterize(&clip, &faces, &s).unwrap();
-    assert!(counts(&fr).iter().all(|&c| c == 1), "pixel-aligned mesh not covered exactly once");
-    check_consistent(&clip, &faces, &fr, &s, if T::NAME == "f32" { 1e-3 } else { 1e-9 });
+    assert!(
+        counts(&fr).iter().all(|&c| c == 1),
+        "pixel-aligned mesh not covered exactly once"
+    );
+    check_consistent(
+        &clip,
+        &faces,
+        &fr,
+        &s,
+        if T::NAME == "f32" { 1e-3 } else { 1e-9 },
+    );
 }
 
 #[test]
@@ -398,7 +487,14 @@ fn ground_plane<T: Real>() {
     let (w, h) = (96, 64);
     let eye = [0.0, 1.0, 0.0];
     let (fovy, near) = (60.0f64, 0.1);
-    let m = camera(eye, [0.0, 1.0, -1.0], fovy, w as f64 / h as f64, near, 1000.0);
+    let m = camera(
+        eye,
+        [0.0, 1.0, -1.0],
+        fovy,
+        w as f64 / h as f64,
+        near,
+        1000.0,
+    );
     // 7 x 7 quads over [-100, 100]^2 at y = 0: the camera's foot is inside a quad, so triangles
     // have one or two vertices behind the eye (w < 0).
     let n = 7;
@@ -406,7 +502,11 @@ fn ground_plane<T: Real>() {
     let mut pts = Vec::new();
     for j in 0..=n {
         for i in 0..=n {
-            pts.push([-l + 2.0 * l * i as f64 / n as f64, 0.0, -l + 2.0 * l * j as f64 / n as f64]);
+            pts.push([
+                -l + 2.0 * l * i as f64 / n as f64,
+                0.0,
+                -l + 2.0 * l * j as f64 / n as f64,
+            ]);
         }
     }
     let mut faces = Vec::new();
@@ -414,11 +514,17 @@ fn ground_plane<T: Real>() {
         for i in 0..n {
             let id = |a: usize, b: usize| ((j + b) * (n + 1) + i + a) as u32;
             // Upward-facing (CCW seen from +y).
-            faces.extend([[id(0, 0), id(0, 1), id(1, 1)], [id(0, 0), id(1, 1), id(1, 0)]]);
+            faces.extend([
+                [id(0, 0), id(0, 1), id(1, 1)],
+                [id(0, 0), id(1, 1), id(1, 0)],
+            ]);
         }
     }
     let clip = project::<T>(&m, &pts);
-    assert!(clip.iter().any(|c| c[3].to_f64c() < 0.0), "some vertices are behind the eye");
+    assert!(
+        clip.iter().any(|c| c[3].to_f64c() < 0.0),
+        "some vertices are behind the eye"
+    );
     let s = RasterSettings {
         cull_backfaces: true,
         ..settings(w, h, 2)
@@ -441,7 +547,11 @@ fn ground_plane<T: Real>() {
         }
         assert_eq!(fr.count(p), 1, "hole at ground pixel {p}");
         let f = fr.nearest(p).unwrap();
-        assert!((f.view_depth.to_f64c() - t).abs() < tol * t, "view depth {} vs {t}", f.view_depth);
+        assert!(
+            (f.view_depth.to_f64c() - t).abs() < tol * t,
+            "view depth {} vs {t}",
+            f.view_depth
+        );
         let face = faces[f.face as usize];
         let q = (0..3).fold([0.0; 3], |acc, i| {
             let v = pts[face[i] as usize];
@@ -453,7 +563,13 @@ fn ground_plane<T: Real>() {
         checked += 1;
     }
     assert!(checked > w * h / 3, "{checked}");
-    check_consistent(&clip, &faces, &fr, &s, if T::NAME == "f32" { 5e-3 } else { 1e-7 });
+    check_consistent(
+        &clip,
+        &faces,
+        &fr,
+        &s,
+        if T::NAME == "f32" { 5e-3 } else { 1e-7 },
+    );
     // Without culling and in screen-space mode it is still finite and hole-free.
     for persp in [true, false] {
         let s2 = RasterSettings {
@@ -488,11 +604,21 @@ fn near_plane_corners<T: Real>() {
     let clip = project::<T>(&m, &[[0.0, -1.0, 1.0], [0.0, -1.0, -1.0], [0.0, 1.0, -1.0]]);
     assert!(rasterize(&clip, &[[0, 1, 2]], &s).unwrap().is_empty());
     // Vertices at w = 1e-12, 0, -1e-12 and w = 1e-12 with z on the near plane.
-    for (wv, zv) in [(1e-12, 0.0), (0.0, 0.0), (-1e-12, 0.0), (1e-12, -1e-12), (1e-300, 0.0)] {
-        let clip: Vec<[T; 4]> = [[0.5, 0.5, zv, wv], [-0.5, -0.5, 0.0, 1.0], [0.5, -0.5, 0.5, 1.0]]
-            .iter()
-            .map(|c| c.map(T::from_f64c))
-            .collect();
+    for (wv, zv) in [
+        (1e-12, 0.0),
+        (0.0, 0.0),
+        (-1e-12, 0.0),
+        (1e-12, -1e-12),
+        (1e-300, 0.0),
+    ] {
+        let clip: Vec<[T; 4]> = [
+            [0.5, 0.5, zv, wv],
+            [-0.5, -0.5, 0.0, 1.0],
+            [0.5, -0.5, 0.5, 1.0],
+        ]
+        .iter()
+        .map(|c| c.map(T::from_f64c))
+        .collect();
         for persp in [true, false] {
             let s = RasterSettings {
                 perspective_correct: persp,
@@ -503,7 +629,16 @@ fn near_plane_corners<T: Real>() {
             check_consistent(&clip, &[[0, 1, 2], [0, 2, 1]], &fr, &s, 1e-2);
             let g = vec![[T::one(); 3]; fr.len()];
             let d = vec![T::one(); fr.len()];
-            rasterize_backward(&clip, &[[0, 1, 2], [0, 2, 1]], &fr, &g, Some(&d), Some(&d), &s).unwrap();
+            rasterize_backward(
+                &clip,
+                &[[0, 1, 2], [0, 2, 1]],
+                &fr,
+                &g,
+                Some(&d),
+                Some(&d),
+                &s,
+            )
+            .unwrap();
         }
     }
     // Two vertices behind the eye, one in front: a clipped triangle whose barycentrics refer to
@@ -512,13 +647,25 @@ fn near_plane_corners<T: Real>() {
     let clip = project::<T>(&m, &pts);
     let fr = rasterize(&clip, &[[0, 1, 2]], &s).unwrap();
     assert!(fr.len() > 100, "{}", fr.len());
-    check_consistent(&clip, &[[0, 1, 2]], &fr, &s, if T::NAME == "f32" { 1e-3 } else { 1e-9 });
+    check_consistent(
+        &clip,
+        &[[0, 1, 2]],
+        &fr,
+        &s,
+        if T::NAME == "f32" { 1e-3 } else { 1e-9 },
+    );
     // And one behind, two in front.
     let pts = [[-2.0, -1.0, -3.0], [2.0, -1.0, -3.0], [0.0, 0.5, 4.0]];
     let clip = project::<T>(&m, &pts);
     let fr = rasterize(&clip, &[[0, 1, 2]], &s).unwrap();
     assert!(fr.len() > 100);
-    check_consistent(&clip, &[[0, 1, 2]], &fr, &s, if T::NAME == "f32" { 1e-3 } else { 1e-9 });
+    check_consistent(
+        &clip,
+        &[[0, 1, 2]],
+        &fr,
+        &s,
+        if T::NAME == "f32" { 1e-3 } else { 1e-9 },
+    );
 }
 
 #[test]
@@ -536,9 +683,17 @@ fn small_scene(seed: u64) -> (Vec<[f64; 4]>, Vec<[u32; 3]>) {
     let mut pts = Vec::new();
     let mut faces = Vec::new();
     for t in 0..5u32 {
-        let c = [rng.range(-0.6, 0.6), rng.range(-0.6, 0.6), rng.range(-1.0, 1.0)];
+        let c = [
+            rng.range(-0.6, 0.6),
+            rng.range(-0.6, 0.6),
+            rng.range(-1.0, 1.0),
+        ];
         for _ in 0..3 {
-            pts.push([c[0] + rng.range(-0.8, 0.8), c[1] + rng.range(-0.8, 0.8), c[2] + rng.range(-0.5, 0.5)]);
+            pts.push([
+                c[0] + rng.range(-0.8, 0.8),
+                c[1] + rng.range(-0.8, 0.8),
+                c[2] + rng.range(-0.5, 0.5),
+            ]);
         }
         faces.push([3 * t, 3 * t + 1, 3 * t + 2]);
     }
@@ -557,7 +712,15 @@ fn gradcheck(persp: bool, seed: u64) {
     let base = rasterize(&clip, &faces, &s).unwrap();
     let n = base.len();
     let mut rng = Rng(seed + 100);
-    let gb: Vec<[f64; 3]> = (0..n).map(|_| [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)]).collect();
+    let gb: Vec<[f64; 3]> = (0..n)
+        .map(|_| {
+            [
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+            ]
+        })
+        .collect();
     let gd: Vec<f64> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
     let gw: Vec<f64> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
     let h = 1e-6;
@@ -595,7 +758,13 @@ fn gradcheck(persp: bool, seed: u64) {
     let gwm: Vec<f64> = (0..n).map(|i| gw[i] * mask(i)).collect();
     // Each output separately, then all together.
     type Sel = (bool, bool, bool);
-    for (ub, ud, uw) in [(true, false, false), (false, true, false), (false, false, true), (true, true, true)] as [Sel; 4] {
+    for (ub, ud, uw) in [
+        (true, false, false),
+        (false, true, false),
+        (false, false, true),
+        (true, true, true),
+    ] as [Sel; 4]
+    {
         let zero3 = vec![[0.0; 3]; n];
         let an = rasterize_backward(
             &clip,
@@ -687,7 +856,10 @@ fn bary_derivatives_match_neighbours() {
                         };
                         if persp {
                             let err = (db * db - d0 * d1).abs();
-                            assert!(err <= 1e-9 * (db * db + (d0 * d1).abs()) + 1e-15, "{db} vs {d0}, {d1}");
+                            assert!(
+                                err <= 1e-9 * (db * db + (d0 * d1).abs()) + 1e-15,
+                                "{db} vs {d0}, {d1}"
+                            );
                             assert!(db * d0 >= -1e-15, "sign {db} vs {d0}");
                         } else {
                             assert!((db - d0).abs() < 1e-12 && d0 == d1, "{db} vs {d0}, {d1}");
@@ -716,14 +888,18 @@ fn soup<T: Real>(seed: u64, nf: usize) -> (Vec<[T; 4]>, Vec<[u32; 3]>) {
                 rng.range(-scale, scale),
                 rng.range(-scale, scale),
                 rng.range(-scale, scale),
-                if rng.below(4) == 0 { rng.range(-scale, scale) } else { rng.range(0.0, scale) },
+                if rng.below(4) == 0 {
+                    rng.range(-scale, scale)
+                } else {
+                    rng.range(0.0, scale)
+                },
             ];
         }
         match rng.below(6) {
-            0 => p[1] = p[0],                                    // coincident vertices
+            0 => p[1] = p[0],                                            // coincident vertices
             1 => p[2] = [0, 1, 2, 3].map(|k| (p[0][k] + p[1][k]) * 0.5), // collinear
-            2 => p[2] = [0, 1, 2, 3].map(|k| p[1][k] * (1.0 + 1e-12)),    // sliver
-            3 => p[1][3] = [0.0, 1e-12, -1e-12][rng.below(3)],  // w ~ 0
+            2 => p[2] = [0, 1, 2, 3].map(|k| p[1][k] * (1.0 + 1e-12)),   // sliver
+            3 => p[1][3] = [0.0, 1e-12, -1e-12][rng.below(3)],           // w ~ 0
             _ => {}
         }
         clip.extend(p);
@@ -764,7 +940,8 @@ fn soups<T: Real>() {
             if T::NAME == "f64" {
                 let g = vec![[T::one(); 3]; fr.len()];
                 let d = vec![T::one(); fr.len()];
-                let gr = rasterize_backward(&clip, &faces, &fr, &g, Some(&d), Some(&d), &s).unwrap();
+                let gr =
+                    rasterize_backward(&clip, &faces, &fr, &g, Some(&d), Some(&d), &s).unwrap();
                 assert!(gr.iter().flatten().all(|x| x.is_finite()));
             }
         }
@@ -811,13 +988,21 @@ fn deterministic_across_thread_counts() {
     faces.extend(sf.iter().map(|t| t.map(|i| i + off)));
     let s = settings(100, 90, 3);
     let run = |n: usize| {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap();
         pool.install(|| {
             let fr = rasterize(&clip, &faces, &s).unwrap();
-            let g: Vec<[f64; 3]> = (0..fr.len()).map(|i| [(i % 7) as f64 - 3.0, 0.5, -1.0]).collect();
+            let g: Vec<[f64; 3]> = (0..fr.len())
+                .map(|i| [(i % 7) as f64 - 3.0, 0.5, -1.0])
+                .collect();
             let d: Vec<f64> = (0..fr.len()).map(|i| (i % 5) as f64).collect();
             let gr = rasterize_backward(&clip, &faces, &fr, &g, Some(&d), Some(&d), &s).unwrap();
-            (bits(&fr), gr.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>())
+            (
+                bits(&fr),
+                gr.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>(),
+            )
         })
     };
     let one = run(1);
@@ -830,7 +1015,11 @@ fn deterministic_across_thread_counts() {
 
 #[test]
 fn typed_errors() {
-    let clip = vec![[0.0f32, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 1.0]];
+    let clip = vec![
+        [0.0f32, 0.0, 0.0, 1.0],
+        [1.0, 0.0, 0.0, 1.0],
+        [0.0, 1.0, 0.0, 1.0],
+    ];
     let s = RasterSettings::default();
     assert_eq!(
         rasterize(&clip, &[[0, 1, 3]], &s).unwrap_err(),
@@ -847,45 +1036,97 @@ fn typed_errors() {
         RasterError::NonFiniteVertex { vertex: 1, .. }
     ));
     bad[1][2] = f32::INFINITY;
-    assert!(matches!(rasterize(&bad, &[[0, 1, 2]], &s), Err(RasterError::NonFiniteVertex { vertex: 1, .. })));
+    assert!(matches!(
+        rasterize(&bad, &[[0, 1, 2]], &s),
+        Err(RasterError::NonFiniteVertex { vertex: 1, .. })
+    ));
     assert_eq!(
         rasterize(&clip, &[[0, 1, 2]], &RasterSettings { width: 0, ..s }).unwrap_err(),
-        RasterError::EmptyImage { width: 0, height: 256 }
+        RasterError::EmptyImage {
+            width: 0,
+            height: 256
+        }
     );
     assert!(matches!(
-        rasterize(&clip, &[[0, 1, 2]], &RasterSettings { faces_per_pixel: 0, ..s }),
+        rasterize(
+            &clip,
+            &[[0, 1, 2]],
+            &RasterSettings {
+                faces_per_pixel: 0,
+                ..s
+            }
+        ),
         Err(RasterError::BadFacesPerPixel { k: 0, .. })
     ));
     assert!(matches!(
-        rasterize(&clip, &[[0, 1, 2]], &RasterSettings { width: 1 << 20, height: 1 << 12, ..s }),
+        rasterize(
+            &clip,
+            &[[0, 1, 2]],
+            &RasterSettings {
+                width: 1 << 20,
+                height: 1 << 12,
+                ..s
+            }
+        ),
         Err(RasterError::ImageTooLarge { .. })
     ));
     assert!(matches!(
-        rasterize(&clip, &[[0, 1, 2]], &RasterSettings { width: usize::MAX, height: 3, ..s }),
+        rasterize(
+            &clip,
+            &[[0, 1, 2]],
+            &RasterSettings {
+                width: usize::MAX,
+                height: 3,
+                ..s
+            }
+        ),
         Err(RasterError::ImageTooLarge { .. })
     ));
     let fr = rasterize(&clip, &[[0, 1, 2]], &s).unwrap();
     assert!(!fr.is_empty());
     assert!(matches!(
         rasterize_backward(&clip, &[[0, 1, 2]], &fr, &[], None, None, &s),
-        Err(RasterError::LengthMismatch { what: "grad_bary", .. })
+        Err(RasterError::LengthMismatch {
+            what: "grad_bary",
+            ..
+        })
     ));
     let g = vec![[0.0f32; 3]; fr.len()];
     assert!(matches!(
         rasterize_backward(&clip, &[[0, 1, 2]], &fr, &g, Some(&[1.0]), None, &s),
-        Err(RasterError::LengthMismatch { what: "grad_depth", .. })
+        Err(RasterError::LengthMismatch {
+            what: "grad_depth",
+            ..
+        })
     ));
     assert!(matches!(
-        rasterize_backward(&clip, &[[0, 1, 2]], &fr, &g, None, None, &RasterSettings { width: 8, ..s }),
+        rasterize_backward(
+            &clip,
+            &[[0, 1, 2]],
+            &fr,
+            &g,
+            None,
+            None,
+            &RasterSettings { width: 8, ..s }
+        ),
         Err(RasterError::FragmentsMismatch(_))
     ));
-    let msg = rasterize(&clip, &[[0, 1, 2], [2, 7, 1]], &s).unwrap_err().to_string();
-    assert!(msg.contains("face 1") && msg.contains("vertex 7") && msg.contains('3'), "{msg}");
+    let msg = rasterize(&clip, &[[0, 1, 2], [2, 7, 1]], &s)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("face 1") && msg.contains("vertex 7") && msg.contains('3'),
+        "{msg}"
+    );
 }
 
 #[test]
 fn fragment_helpers() {
-    let clip = vec![[-1.0f64, -1.0, 0.0, 1.0], [1.0, -1.0, 0.0, 1.0], [-1.0, 1.0, 0.0, 1.0]];
+    let clip = vec![
+        [-1.0f64, -1.0, 0.0, 1.0],
+        [1.0, -1.0, 0.0, 1.0],
+        [-1.0, 1.0, 0.0, 1.0],
+    ];
     let s = settings(8, 8, 1);
     let fr = rasterize(&clip, &[[0, 1, 2]], &s).unwrap();
     // The lower-left half: pixel (row r, col c) is inside iff c < r; the centres with c == r lie

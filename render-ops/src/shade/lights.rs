@@ -140,11 +140,15 @@ impl<'t, T: Real> Lights<'t, T> {
         let mut out = Lights::new();
         for l in lights {
             match l {
-                scene::Light::Ambient { color } => out.ambient.push(AmbientLight::constant(tape, *color)),
-                scene::Light::Directional { direction, color } => {
-                    out.directional.push(DirectionalLight::constant(tape, *direction, *color))
+                scene::Light::Ambient { color } => {
+                    out.ambient.push(AmbientLight::constant(tape, *color))
                 }
-                scene::Light::Point { position, color } => out.point.push(PointLight::constant(tape, *position, *color)),
+                scene::Light::Directional { direction, color } => out
+                    .directional
+                    .push(DirectionalLight::constant(tape, *direction, *color)),
+                scene::Light::Point { position, color } => out
+                    .point
+                    .push(PointLight::constant(tape, *position, *color)),
                 scene::Light::Sh { coeffs } => {
                     let mut c = [[0.0; 3]; 9];
                     for (dst, src) in c.iter_mut().zip(coeffs) {
@@ -159,7 +163,11 @@ impl<'t, T: Real> Lights<'t, T> {
 
     /// Stacks `f` of every light of a kind into `[L, 3]` (a `[0, 3]` constant when there are
     /// none).
-    pub(crate) fn stacked<L>(tape: &'t Tape<T>, lights: &[L], f: impl Fn(&L) -> Var<'t, T>) -> Var<'t, T> {
+    pub(crate) fn stacked<L>(
+        tape: &'t Tape<T>,
+        lights: &[L],
+        f: impl Fn(&L) -> Var<'t, T>,
+    ) -> Var<'t, T> {
         if lights.is_empty() {
             return tape.constant(ArrayD::zeros(IxDyn(&[0, 3])));
         }

@@ -25,7 +25,9 @@
 //! - [`phong`]: Lambert, Phong (1975) and Blinn-Phong (1977) reflection;
 //! - [`sh`]: order-2 real spherical-harmonics irradiance (Ramamoorthi and Hanrahan 2001);
 //! - [`shader`]: programmable shaders: [`FragmentInputs`] and [`run_shader`] / [`render_shader`];
-//! - [`outputs`]: normal maps, depth and PNCC.
+//! - [`outputs`]: normal maps, depth and PNCC;
+//! - [`suite`]: gradient-check cases of these ops and of [`crate::texture`] for
+//!   `tapestry gradcheck`.
 
 pub mod lights;
 pub mod normals;
@@ -33,14 +35,20 @@ pub mod outputs;
 pub mod phong;
 pub mod sh;
 pub mod shader;
+pub mod suite;
 
-pub use lights::{AmbientLight, DirectionalLight, Lights, Material, PointLight, Reflectance, ShLight};
+pub use lights::{
+    AmbientLight, DirectionalLight, Lights, Material, PointLight, Reflectance, ShLight,
+};
 pub use normals::{face_normals, face_normals_composed, vertex_normals, vertex_normals_composed};
 pub use outputs::{depth_map, ncc, normal_map, normal_map_view, pncc};
 pub use phong::{shade, shade_composed, Surface};
-pub use sh::{sh_basis, sh_basis_composed, sh_shade, sh_shade_composed, SH_C0, SH_C1, SH_C2, SH_C3, SH_C4};
+pub use sh::{
+    sh_basis, sh_basis_composed, sh_shade, sh_shade_composed, SH_C0, SH_C1, SH_C2, SH_C3, SH_C4,
+};
 pub use shader::{
-    fragment_inputs, render_shader, run_shader, uv_derivatives, FragmentInputs, MeshAttributes, ShaderOutput,
+    fragment_inputs, render_shader, run_shader, uv_derivatives, FragmentInputs, MeshAttributes,
+    ShaderOutput,
 };
 
 use autodiff::{AutodiffError, Real, Result as AdResult, Tensor};
@@ -172,13 +180,26 @@ pub(crate) fn rows_of<'a, T: Real>(
 }
 
 /// `[k, 3]` rows of a small tensor (lights); `[3]` counts as one row.
-pub(crate) fn light_rows<T: Real>(op: &'static str, what: &str, t: &Tensor<T>) -> AdResult<Vec<V3<T>>> {
+pub(crate) fn light_rows<T: Real>(
+    op: &'static str,
+    what: &str,
+    t: &Tensor<T>,
+) -> AdResult<Vec<V3<T>>> {
     let s = t.shape();
     let ok = (s.len() == 2 && s[1] == 3) || s == [3];
     if !ok {
-        return Err(AutodiffError::shape(op, &[s], format!("{what} must be [L, 3]")));
+        return Err(AutodiffError::shape(
+            op,
+            &[s],
+            format!("{what} must be [L, 3]"),
+        ));
     }
-    Ok(t.iter().copied().collect::<Vec<T>>().chunks(3).map(|c| [c[0], c[1], c[2]]).collect())
+    Ok(t.iter()
+        .copied()
+        .collect::<Vec<T>>()
+        .chunks(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect())
 }
 
 /// Runs `f(first_fragment, out, shared)` over fixed chunks of [`CHUNK`] fragments in parallel.
@@ -250,7 +271,13 @@ mod tests {
         };
         let results: Vec<_> = [1, 3]
             .iter()
-            .map(|&t| rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap().install(run))
+            .map(|&t| {
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(t)
+                    .build()
+                    .unwrap()
+                    .install(run)
+            })
             .collect();
         assert_eq!(results[0].1[0].to_bits(), results[1].1[0].to_bits());
         assert_eq!(results[0].0, results[1].0);

@@ -19,16 +19,25 @@ use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor,
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
-use super::{acc3, cross3, normalize3, normalize3_vjp, scale3, sub3, V3, SAFE_EPS};
+use super::{acc3, cross3, normalize3, normalize3_vjp, scale3, sub3, SAFE_EPS, V3};
 
 fn positions_of<T: Real>(op: &'static str, p: &Tensor<T>) -> AdResult<Vec<V3<T>>> {
     if p.ndim() != 2 || p.shape()[1] != 3 {
-        return Err(AutodiffError::shape(op, &[p.shape()], "positions must be [V, 3]"));
+        return Err(AutodiffError::shape(
+            op,
+            &[p.shape()],
+            "positions must be [V, 3]",
+        ));
     }
     Ok(p.outer_iter().map(|r| [r[0], r[1], r[2]]).collect())
 }
 
-fn check_faces<T: Real>(op: &'static str, faces: &[[u32; 3]], nv: usize, p: &Tensor<T>) -> AdResult<()> {
+fn check_faces<T: Real>(
+    op: &'static str,
+    faces: &[[u32; 3]],
+    nv: usize,
+    p: &Tensor<T>,
+) -> AdResult<()> {
     for (f, tri) in faces.iter().enumerate() {
         if let Some(&bad) = tri.iter().find(|&&i| i as usize >= nv) {
             return Err(AutodiffError::index(
@@ -87,7 +96,12 @@ fn face_cross<T: Real>(p: &[V3<T>], faces: &[[u32; 3]]) -> Vec<V3<T>> {
 }
 
 /// Given `dL/dc_f` per face, `dL/dp` per vertex (summed over (face, corner) in face order).
-fn cross_backward<T: Real>(p: &[V3<T>], faces: &[[u32; 3]], gc: &[V3<T>], adj: &Adjacency) -> Tensor<T> {
+fn cross_backward<T: Real>(
+    p: &[V3<T>],
+    faces: &[[u32; 3]],
+    gc: &[V3<T>],
+    adj: &Adjacency,
+) -> Tensor<T> {
     // Per face and corner: c = e1 x e2, e1 = pb - pa, e2 = pc - pa;
     // ge1 = e2 x gc, ge2 = gc x e1; gpb = ge1, gpc = ge2, gpa = -(ge1 + ge2).
     let corner: Vec<[V3<T>; 3]> = faces
@@ -100,7 +114,14 @@ fn cross_backward<T: Real>(p: &[V3<T>], faces: &[[u32; 3]], gc: &[V3<T>], adj: &
             let e2 = sub3(p[c as usize], pa);
             let ge1 = cross3(e2, g);
             let ge2 = cross3(g, e1);
-            [scale3([ge1[0] + ge2[0], ge1[1] + ge2[1], ge1[2] + ge2[2]], -T::one()), ge1, ge2]
+            [
+                scale3(
+                    [ge1[0] + ge2[0], ge1[1] + ge2[1], ge1[2] + ge2[2]],
+                    -T::one(),
+                ),
+                ge1,
+                ge2,
+            ]
         })
         .collect();
     let gp: Vec<T> = (0..p.len())
@@ -133,7 +154,11 @@ impl<T: Real> Op<T> for FaceNormalsOp<T> {
         let c = face_cross(&p, &self.faces);
         let out: Vec<T> = c.iter().flat_map(|&x| normalize3(x, self.eps).0).collect();
         self.adj = Some(Adjacency::new(&self.faces, p.len()));
-        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[self.faces.len(), 3]), out).expect("f x 3")])
+        Ok(vec![ArrayD::from_shape_vec(
+            IxDyn(&[self.faces.len(), 3]),
+            out,
+        )
+        .expect("f x 3")])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
@@ -188,8 +213,14 @@ impl<T: Real> Op<T> for VertexNormalsOp<T> {
             })
             .collect();
         self.adj = Some(adj);
-        let out: Vec<T> = self.m.iter().flat_map(|&x| normalize3(x, self.eps).0).collect();
-        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[p.len(), 3]), out).expect("v x 3")])
+        let out: Vec<T> = self
+            .m
+            .iter()
+            .flat_map(|&x| normalize3(x, self.eps).0)
+            .collect();
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[p.len(), 3]), out).expect("v x 3")
+        ])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
@@ -242,7 +273,10 @@ pub fn face_normals<'t, T: Real>(positions: Var<'t, T>, faces: &Arc<Vec<[u32; 3]
 
 /// Area-weighted unit vertex normals `[V, 3]` of positions `[V, 3]` (fused op). A vertex
 /// without faces (or whose weighted face normals cancel) gets `(0, 0, 0)`.
-pub fn vertex_normals<'t, T: Real>(positions: Var<'t, T>, faces: &Arc<Vec<[u32; 3]>>) -> Var<'t, T> {
+pub fn vertex_normals<'t, T: Real>(
+    positions: Var<'t, T>,
+    faces: &Arc<Vec<[u32; 3]>>,
+) -> Var<'t, T> {
     let op = VertexNormalsOp {
         faces: faces.clone(),
         eps: T::from_f64c(SAFE_EPS),
@@ -264,17 +298,25 @@ fn unnormalised_cross<'t, T: Real>(positions: Var<'t, T>, faces: &[[u32; 3]]) ->
 }
 
 /// [`face_normals`] composed from tape ops (`index_select`, `cross`, `normalize`).
-pub fn face_normals_composed<'t, T: Real>(positions: Var<'t, T>, faces: &Arc<Vec<[u32; 3]>>) -> Var<'t, T> {
+pub fn face_normals_composed<'t, T: Real>(
+    positions: Var<'t, T>,
+    faces: &Arc<Vec<[u32; 3]>>,
+) -> Var<'t, T> {
     unnormalised_cross(positions, faces).normalize(T::from_f64c(SAFE_EPS))
 }
 
 /// [`vertex_normals`] composed from tape ops (`cross`, `scatter_add`, `normalize`).
-pub fn vertex_normals_composed<'t, T: Real>(positions: Var<'t, T>, faces: &Arc<Vec<[u32; 3]>>) -> Var<'t, T> {
+pub fn vertex_normals_composed<'t, T: Real>(
+    positions: Var<'t, T>,
+    faces: &Arc<Vec<[u32; 3]>>,
+) -> Var<'t, T> {
     let t = positions.tape();
     let nv = positions.shape().first().copied().unwrap_or(0);
     let c = unnormalised_cross(positions, faces);
     let nf = faces.len();
-    let index = ArrayD::from_shape_fn(IxDyn(&[3 * nf, 3]), |i| faces[i[0] % nf][i[0] / nf] as usize);
+    let index = ArrayD::from_shape_fn(IxDyn(&[3 * nf, 3]), |i| {
+        faces[i[0] % nf][i[0] / nf] as usize
+    });
     let m = t.concat(&[c, c, c], 0).scatter_add(0, index, nv);
     m.normalize(T::from_f64c(SAFE_EPS))
 }

@@ -31,7 +31,9 @@ pub fn normal_map<'t, T: Real>(normal: Var<'t, T>) -> Var<'t, T> {
 pub fn normal_map_view<'t, T: Real>(normal: Var<'t, T>, view: &[[f64; 4]; 4]) -> Var<'t, T> {
     // n_view = R n for row vectors: n @ R^T.
     let rt = Array2::from_shape_fn((3, 3), |(i, j)| T::from_f64c(view[j][i])).into_dyn();
-    let n = normal.normalize(T::from_f64c(SAFE_EPS)).matmul(normal.tape().constant(rt));
+    let n = normal
+        .normalize(T::from_f64c(SAFE_EPS))
+        .matmul(normal.tape().constant(rt));
     normal_map(n)
 }
 
@@ -75,6 +77,9 @@ pub fn ncc<T: Real>(mean_shape: &[[T; 3]]) -> Tensor<T> {
 /// PNCC (projected NCC) fragment colours `[N, 3]`: the code `[V, 3]` of [`ncc`] (as a tape
 /// variable) interpolated at the fragments of `r`. Gradients reach the positions through the
 /// barycentrics.
-pub fn pncc<'t, T: Real>(code: Var<'t, T>, r: &Rasterized<'t, T>) -> Result<Var<'t, T>, RenderError> {
+pub fn pncc<'t, T: Real>(
+    code: Var<'t, T>,
+    r: &Rasterized<'t, T>,
+) -> Result<Var<'t, T>, RenderError> {
     interpolate(code, r)
 }

@@ -27,8 +27,8 @@ use ndarray::{ArrayD, IxDyn};
 
 use super::lights::{Lights, Material, Reflectance};
 use super::{
-    add3, chunked, dot3, grad_tensor, light_rows, mul3, normalize3, normalize3_vjp, rows_of, scale3, sub3, Rows, V3,
-    SAFE_EPS,
+    add3, chunked, dot3, grad_tensor, light_rows, mul3, normalize3, normalize3_vjp, rows_of,
+    scale3, sub3, Rows, SAFE_EPS, V3,
 };
 
 /// Per-fragment inputs of a reflection model.
@@ -137,9 +137,17 @@ impl<T: Real> Inputs<'_, T> {
         }
     }
 
-    fn lights_at(&self, i: usize, n: V3<T>, v: V3<T>) -> impl Iterator<Item = (LightEval<T>, V3<T>)> + '_ {
+    fn lights_at(
+        &self,
+        i: usize,
+        n: V3<T>,
+        v: V3<T>,
+    ) -> impl Iterator<Item = (LightEval<T>, V3<T>)> + '_ {
         let x = self.pos.get(i);
-        let d = self.dirs.iter().map(move |&(l, _, _, c)| (self.light(n, v, l, T::zero()), c));
+        let d = self
+            .dirs
+            .iter()
+            .map(move |&(l, _, _, c)| (self.light(n, v, l, T::zero()), c));
         let p = self.points.iter().map(move |&(q, c)| {
             let (l, len) = normalize3(sub3(q, x), self.eps);
             (self.light(n, v, l, len), c)
@@ -219,10 +227,18 @@ fn add_at<T: Real>(buf: &mut [T], at: usize, v: V3<T>) {
     buf[at + 2] += v[2];
 }
 
-fn read_inputs<'a, T: Real>(model: Reflectance, eps: T, inputs: &'a [&'a Tensor<T>]) -> AdResult<Inputs<'a, T>> {
+fn read_inputs<'a, T: Real>(
+    model: Reflectance,
+    eps: T,
+    inputs: &'a [&'a Tensor<T>],
+) -> AdResult<Inputs<'a, T>> {
     const OP: &str = "shade";
     if inputs[0].ndim() != 2 {
-        return Err(AutodiffError::shape(OP, &[inputs[0].shape()], "positions must be [N, 3]"));
+        return Err(AutodiffError::shape(
+            OP,
+            &[inputs[0].shape()],
+            "positions must be [N, 3]",
+        ));
     }
     let n = inputs[0].shape()[0];
     let pos = rows_of(OP, "positions", inputs[0], n, false)?;
@@ -231,11 +247,19 @@ fn read_inputs<'a, T: Real>(model: Reflectance, eps: T, inputs: &'a [&'a Tensor<
     let ka = rows_of(OP, "ka", inputs[3], n, true)?;
     let ks = rows_of(OP, "ks", inputs[4], n, true)?;
     if inputs[5].len() != 1 {
-        return Err(AutodiffError::shape(OP, &[inputs[5].shape()], "shininess must have one element"));
+        return Err(AutodiffError::shape(
+            OP,
+            &[inputs[5].shape()],
+            "shininess must have one element",
+        ));
     }
     let s = *inputs[5].iter().next().expect("one element");
     if inputs[6].len() != 3 {
-        return Err(AutodiffError::shape(OP, &[inputs[6].shape()], "eye must be [3]"));
+        return Err(AutodiffError::shape(
+            OP,
+            &[inputs[6].shape()],
+            "eye must be [3]",
+        ));
     }
     let e: Vec<T> = inputs[6].iter().copied().collect();
     let eye = [e[0], e[1], e[2]];
@@ -250,7 +274,12 @@ fn read_inputs<'a, T: Real>(model: Reflectance, eps: T, inputs: &'a [&'a Tensor<
     if dd.len() != dc.len() || pq.len() != pc.len() {
         return Err(AutodiffError::shape(
             OP,
-            &[inputs[8].shape(), inputs[9].shape(), inputs[10].shape(), inputs[11].shape()],
+            &[
+                inputs[8].shape(),
+                inputs[9].shape(),
+                inputs[10].shape(),
+                inputs[11].shape(),
+            ],
             "one colour per light",
         ));
     }
@@ -289,7 +318,10 @@ impl<T: Real> Op<T> for PhongOp<T> {
     }
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let std: Vec<Tensor<T>> = inputs.iter().map(|t| t.as_standard_layout().into_owned()).collect();
+        let std: Vec<Tensor<T>> = inputs
+            .iter()
+            .map(|t| t.as_standard_layout().into_owned())
+            .collect();
         let refs: Vec<&Tensor<T>> = std.iter().collect();
         let k = read_inputs(self.model, self.eps, &refs)?;
         let n = refs[0].shape()[0];
@@ -298,11 +330,17 @@ impl<T: Real> Op<T> for PhongOp<T> {
                 row.copy_from_slice(&k.color(start + r));
             }
         });
-        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[n, 3]), out).expect("n x 3")])
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[n, 3]), out).expect("n x 3")
+        ])
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let std: Vec<Tensor<T>> = ctx.inputs.iter().map(|t| t.as_standard_layout().into_owned()).collect();
+        let std: Vec<Tensor<T>> = ctx
+            .inputs
+            .iter()
+            .map(|t| t.as_standard_layout().into_owned())
+            .collect();
         let refs: Vec<&Tensor<T>> = std.iter().collect();
         let k = read_inputs(self.model, self.eps, &refs)?;
         let n = refs[0].shape()[0];
@@ -430,12 +468,17 @@ impl<T: Real> Op<T> for PhongOp<T> {
             out[5] = Some(grad_tensor(ctx.inputs[5].shape(), vec![shared[lay.s_s]]));
         }
         if need(6) {
-            out[6] = Some(grad_tensor(ctx.inputs[6].shape(), shared[lay.s_eye..lay.s_eye + 3].to_vec()));
+            out[6] = Some(grad_tensor(
+                ctx.inputs[6].shape(),
+                shared[lay.s_eye..lay.s_eye + 3].to_vec(),
+            ));
         }
         if need(7) {
             // Every ambient light gets the gradient of their sum.
             let la = ctx.inputs[7].len() / 3;
-            let gs: Vec<T> = (0..la).flat_map(|_| shared[lay.s_amb..lay.s_amb + 3].to_vec()).collect();
+            let gs: Vec<T> = (0..la)
+                .flat_map(|_| shared[lay.s_amb..lay.s_amb + 3].to_vec())
+                .collect();
             out[7] = Some(grad_tensor(ctx.inputs[7].shape(), gs));
         }
         if need(8) {
@@ -451,15 +494,21 @@ impl<T: Real> Op<T> for PhongOp<T> {
             out[8] = Some(grad_tensor(ctx.inputs[8].shape(), gd));
         }
         if need(9) {
-            let gc: Vec<T> = (0..nd).flat_map(|j| shared[lay.s_dir + 6 * j..lay.s_dir + 6 * j + 3].to_vec()).collect();
+            let gc: Vec<T> = (0..nd)
+                .flat_map(|j| shared[lay.s_dir + 6 * j..lay.s_dir + 6 * j + 3].to_vec())
+                .collect();
             out[9] = Some(grad_tensor(ctx.inputs[9].shape(), gc));
         }
         if need(10) {
-            let gq: Vec<T> = (0..np).flat_map(|j| shared[lay.s_pt + 6 * j + 3..lay.s_pt + 6 * j + 6].to_vec()).collect();
+            let gq: Vec<T> = (0..np)
+                .flat_map(|j| shared[lay.s_pt + 6 * j + 3..lay.s_pt + 6 * j + 6].to_vec())
+                .collect();
             out[10] = Some(grad_tensor(ctx.inputs[10].shape(), gq));
         }
         if need(11) {
-            let gc: Vec<T> = (0..np).flat_map(|j| shared[lay.s_pt + 6 * j..lay.s_pt + 6 * j + 3].to_vec()).collect();
+            let gc: Vec<T> = (0..np)
+                .flat_map(|j| shared[lay.s_pt + 6 * j..lay.s_pt + 6 * j + 3].to_vec())
+                .collect();
             out[11] = Some(grad_tensor(ctx.inputs[11].shape(), gc));
         }
         Ok(out)
@@ -532,7 +581,10 @@ pub fn shade_composed<'t, T: Real>(
             };
             let spec = base.relu().pow(material.shininess.reshape(&[1]));
             // No highlight where the surface faces away from the light.
-            let facing = ndl.value().map(|x| x.mapv(|c| c > T::zero())).unwrap_or_else(|_| ArrayD::from_elem(IxDyn(&[]), false));
+            let facing = ndl
+                .value()
+                .map(|x| x.mapv(|c| c > T::zero()))
+                .unwrap_or_else(|_| ArrayD::from_elem(IxDyn(&[]), false));
             let zero = t.constant(tensor::scalar(T::zero()));
             refl = refl + material.ks * spec.where_(facing, zero);
         }

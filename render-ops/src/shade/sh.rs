@@ -18,7 +18,7 @@
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
 
-use super::{chunked, grad_tensor, normalize3, normalize3_vjp, rows_of, Rows, V3, SAFE_EPS};
+use super::{chunked, grad_tensor, normalize3, normalize3_vjp, rows_of, Rows, SAFE_EPS, V3};
 
 /// `Y_00` constant.
 pub const SH_C0: f64 = 0.282095;
@@ -67,16 +67,26 @@ struct ShOp<T: Real> {
     eps: T,
 }
 
-fn read<'a, T: Real>(inputs: &'a [Tensor<T>]) -> AdResult<(usize, Rows<'a, T>, Rows<'a, T>, &'a [T])> {
+fn read<'a, T: Real>(
+    inputs: &'a [Tensor<T>],
+) -> AdResult<(usize, Rows<'a, T>, Rows<'a, T>, &'a [T])> {
     const OP: &str = "sh_shade";
     if inputs[0].ndim() != 2 {
-        return Err(AutodiffError::shape(OP, &[inputs[0].shape()], "normals must be [N, 3]"));
+        return Err(AutodiffError::shape(
+            OP,
+            &[inputs[0].shape()],
+            "normals must be [N, 3]",
+        ));
     }
     let n = inputs[0].shape()[0];
     let nrm = rows_of(OP, "normals", &inputs[0], n, false)?;
     let alb = rows_of(OP, "albedo", &inputs[1], n, true)?;
     if inputs[2].shape() != [9, 3] {
-        return Err(AutodiffError::shape(OP, &[inputs[2].shape()], "SH coefficients must be [9, 3]"));
+        return Err(AutodiffError::shape(
+            OP,
+            &[inputs[2].shape()],
+            "SH coefficients must be [9, 3]",
+        ));
     }
     Ok((n, nrm, alb, inputs[2].as_slice().expect("std")))
 }
@@ -96,7 +106,10 @@ impl<T: Real> Op<T> for ShOp<T> {
         "sh_shade"
     }
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let std: Vec<Tensor<T>> = inputs.iter().map(|t| t.as_standard_layout().into_owned()).collect();
+        let std: Vec<Tensor<T>> = inputs
+            .iter()
+            .map(|t| t.as_standard_layout().into_owned())
+            .collect();
         let (n, nrm, alb, sh) = read(&std)?;
         let (out, _) = chunked::<T, _>(n, 3, 0, |start, o, _| {
             for (r, row) in o.chunks_mut(3).enumerate() {
@@ -107,10 +120,16 @@ impl<T: Real> Op<T> for ShOp<T> {
                 row.copy_from_slice(&[a[0] * e[0], a[1] * e[1], a[2] * e[2]]);
             }
         });
-        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[n, 3]), out).expect("n x 3")])
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[n, 3]), out).expect("n x 3")
+        ])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let std: Vec<Tensor<T>> = ctx.inputs.iter().map(|t| t.as_standard_layout().into_owned()).collect();
+        let std: Vec<Tensor<T>> = ctx
+            .inputs
+            .iter()
+            .map(|t| t.as_standard_layout().into_owned())
+            .collect();
         let (n, nrm, alb, sh) = read(&std)?;
         let g = ctx.grad_outputs[0].as_standard_layout();
         let g = Rows {
@@ -147,7 +166,11 @@ impl<T: Real> Op<T> for ShOp<T> {
                 }
             }
         });
-        let column = |off: usize| -> Vec<T> { rows.chunks(width).flat_map(|r| r[off..off + 3].to_vec()).collect() };
+        let column = |off: usize| -> Vec<T> {
+            rows.chunks(width)
+                .flat_map(|r| r[off..off + 3].to_vec())
+                .collect()
+        };
         Ok(vec![
             ctx.needs_grad[0].then(|| grad_tensor(&[n, 3], column(0))),
             ctx.needs_grad[1].then(|| {
@@ -164,7 +187,11 @@ impl<T: Real> Op<T> for ShOp<T> {
 
 /// SH-lit colours `[N, 3]` of normals `[N, 3]` (any length), albedo `[N, 3]` or `[3]` and
 /// coefficients `[9, 3]` (fused op; see the module docs for the model).
-pub fn sh_shade<'t, T: Real>(normal: Var<'t, T>, albedo: Var<'t, T>, coeffs: Var<'t, T>) -> Var<'t, T> {
+pub fn sh_shade<'t, T: Real>(
+    normal: Var<'t, T>,
+    albedo: Var<'t, T>,
+    coeffs: Var<'t, T>,
+) -> Var<'t, T> {
     let op = ShOp {
         eps: T::from_f64c(SAFE_EPS),
     };
@@ -207,7 +234,11 @@ pub fn sh_basis_composed<'t, T: Real>(normal: Var<'t, T>) -> Var<'t, T> {
 }
 
 /// [`sh_shade`] composed from tape ops: `albedo * (basis(n) @ coeffs)`.
-pub fn sh_shade_composed<'t, T: Real>(normal: Var<'t, T>, albedo: Var<'t, T>, coeffs: Var<'t, T>) -> Var<'t, T> {
+pub fn sh_shade_composed<'t, T: Real>(
+    normal: Var<'t, T>,
+    albedo: Var<'t, T>,
+    coeffs: Var<'t, T>,
+) -> Var<'t, T> {
     albedo * sh_basis_composed(normal).matmul(coeffs)
 }
 
@@ -218,7 +249,20 @@ mod tests {
     #[test]
     fn basis_matches_conventions_at_axes() {
         let b = sh_eval([0.0f64, 0.0, 1.0]);
-        assert_eq!(b, [0.282095, 0.0, 0.488603, 0.0, 0.0, 0.0, 0.315392 * 2.0, 0.0, 0.0]);
+        assert_eq!(
+            b,
+            [
+                0.282095,
+                0.0,
+                0.488603,
+                0.0,
+                0.0,
+                0.0,
+                0.315392 * 2.0,
+                0.0,
+                0.0
+            ]
+        );
         let s = 0.5f64.sqrt();
         let b = sh_eval([s, s, 0.0]);
         assert!((b[4] - 1.092548 * 0.5).abs() < 1e-15);

@@ -132,7 +132,10 @@ impl<'t, T: Real> FragmentInputs<'t, T> {
 
     /// A named attribute, interpolated.
     pub fn attribute(&self, name: &str) -> Option<Var<'t, T>> {
-        self.attributes.iter().find(|(n, _)| n == name).map(|(_, v)| *v)
+        self.attributes
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, v)| *v)
     }
 
     /// Samples `texture` at the fragments' uvs (trilinear filtering picks the mip level from
@@ -140,7 +143,10 @@ impl<'t, T: Real> FragmentInputs<'t, T> {
     pub fn sample(&self, texture: &Texture<'t, T>) -> Var<'t, T> {
         match self.uv {
             Some(uv) => texture.sample(uv, self.uv_da),
-            None => self.position.tape().apply(FailOp("texture sampled, but the mesh has no uvs".into()), &[]),
+            None => self.position.tape().apply(
+                FailOp("texture sampled, but the mesh has no uvs".into()),
+                &[],
+            ),
         }
     }
 
@@ -191,7 +197,13 @@ impl<T: Real> Op<T> for DerivOp<T> {
     }
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
         let attr = inputs[0].as_standard_layout();
-        let nv = self.faces.iter().flatten().map(|&i| i as usize + 1).max().unwrap_or(0);
+        let nv = self
+            .faces
+            .iter()
+            .flatten()
+            .map(|&i| i as usize + 1)
+            .max()
+            .unwrap_or(0);
         if attr.ndim() != 2 || attr.shape()[0] < nv {
             return Err(AutodiffError::shape(
                 "interpolate_derivatives",
@@ -205,20 +217,24 @@ impl<T: Real> Op<T> for DerivOp<T> {
         let n = f.len();
         let mut out = vec![T::zero(); 2 * n * c];
         if c > 0 {
-            out.par_chunks_mut(ROWS * 2 * c).enumerate().for_each(|(blk, chunk)| {
-                for (r, o) in chunk.chunks_mut(2 * c).enumerate() {
-                    let i = blk * ROWS + r;
-                    let tri = self.faces[f.face[i] as usize];
-                    let (dx, dy) = (f.dbary_dx[i], f.dbary_dy[i]);
-                    for ch in 0..c {
-                        let at = |k: usize| a[tri[k] as usize * c + ch];
-                        o[ch] = dx[0] * at(0) + dx[1] * at(1) + dx[2] * at(2);
-                        o[c + ch] = dy[0] * at(0) + dy[1] * at(1) + dy[2] * at(2);
+            out.par_chunks_mut(ROWS * 2 * c)
+                .enumerate()
+                .for_each(|(blk, chunk)| {
+                    for (r, o) in chunk.chunks_mut(2 * c).enumerate() {
+                        let i = blk * ROWS + r;
+                        let tri = self.faces[f.face[i] as usize];
+                        let (dx, dy) = (f.dbary_dx[i], f.dbary_dy[i]);
+                        for ch in 0..c {
+                            let at = |k: usize| a[tri[k] as usize * c + ch];
+                            o[ch] = dx[0] * at(0) + dx[1] * at(1) + dx[2] * at(2);
+                            o[c + ch] = dy[0] * at(0) + dy[1] * at(1) + dy[2] * at(2);
+                        }
                     }
-                }
-            });
+                });
         }
-        Ok(vec![ArrayD::from_shape_vec(IxDyn(&[n, 2 * c]), out).expect("n x 2c")])
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[n, 2 * c]), out).expect("n x 2c")
+        ])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
@@ -236,11 +252,14 @@ impl<T: Real> Op<T> for DerivOp<T> {
             for k in 0..3 {
                 let base = tri[k] as usize * c;
                 for ch in 0..c {
-                    ga[base + ch] += f.dbary_dx[i][k] * g[i * 2 * c + ch] + f.dbary_dy[i][k] * g[i * 2 * c + c + ch];
+                    ga[base + ch] += f.dbary_dx[i][k] * g[i * 2 * c + ch]
+                        + f.dbary_dy[i][k] * g[i * 2 * c + c + ch];
                 }
             }
         }
-        Ok(vec![Some(ArrayD::from_shape_vec(IxDyn(shape), ga).expect("attribute shape"))])
+        Ok(vec![Some(
+            ArrayD::from_shape_vec(IxDyn(shape), ga).expect("attribute shape"),
+        )])
     }
 }
 
@@ -316,12 +335,22 @@ where
     let out: ShaderOutput<'t, T> = shader(&inputs).into();
     let cs = out.color.value()?.shape().to_vec();
     if cs.len() != 2 || cs[0] != inputs.len() {
-        return Err(AutodiffError::shape("shader", &[&cs], format!("the shader must return [{}, C] colours", inputs.len())).into());
+        return Err(AutodiffError::shape(
+            "shader",
+            &[&cs],
+            format!("the shader must return [{}, C] colours", inputs.len()),
+        )
+        .into());
     }
     if let Some(a) = out.alpha {
         let s = a.value()?.shape().to_vec();
         if s != [inputs.len(), 1] && s != [inputs.len()] {
-            return Err(AutodiffError::shape("shader", &[&s], format!("alpha must be [{}, 1]", inputs.len())).into());
+            return Err(AutodiffError::shape(
+                "shader",
+                &[&s],
+                format!("alpha must be [{}, 1]", inputs.len()),
+            )
+            .into());
         }
     }
     Ok(out)
