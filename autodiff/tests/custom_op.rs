@@ -1,3 +1,4 @@
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
 //! A user-defined op, written as a crate outside `autodiff` would write it: a fused softplus
 //! with a learnable temperature, `y = tau * ln(1 + exp(x / tau))`, with two inputs, an
 //! optional second output `sigmoid(x / tau)`, and a cache filled in the forward.

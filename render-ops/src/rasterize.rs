@@ -117,7 +117,7 @@ pub fn rasterize<'t, T: Real>(
     let op = RasterizeOp {
         fragments: fragments.clone(),
         faces: faces.clone(),
-        settings: settings.clone(),
+        settings: *settings,
     };
     let outs = clip.tape().apply_multi(op, &[clip], 3);
     Ok(Rasterized {

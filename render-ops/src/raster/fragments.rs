@@ -374,25 +374,36 @@ pub(crate) fn assemble<T: Real>(
                 offs.fill((ro.base + pos) as u32);
                 continue;
             }
-            let mut i = tile.row_len[..lr]
+            let i0 = tile.row_len[..lr]
                 .iter()
                 .map(|&n| n as usize)
                 .sum::<usize>();
+            let n_row = tile.row_len[lr] as usize;
+            let (src, dst) = (i0..i0 + n_row, pos..pos + n_row);
+            // One iterator over this segment's inputs and outputs: no per-fragment bounds checks.
+            let mut it = tile.idx[src.clone()]
+                .iter()
+                .zip(&tile.depth[src])
+                .zip(ro.face[dst.clone()].iter_mut())
+                .zip(ro.bary[dst.clone()].iter_mut())
+                .zip(ro.depth[dst.clone()].iter_mut())
+                .zip(ro.view_depth[dst.clone()].iter_mut())
+                .zip(ro.dx[dst.clone()].iter_mut())
+                .zip(ro.dy[dst].iter_mut());
             let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + (c1 - c0)];
             for (j, (o, &n)) in offs.iter_mut().zip(counts).enumerate() {
                 *o = (ro.base + pos) as u32;
+                pos += n as usize;
                 let col = (c0 + j) as f64;
-                for _ in 0..n {
-                    let (st, face) = &tile.setups[tile.idx[i] as usize];
+                for (((((((idx, d), of), ob), od), ov), ox), oy) in it.by_ref().take(n as usize) {
+                    let (st, face) = &tile.setups[*idx as usize];
                     let (bary, vd, dx, dy) = st.values::<T>(col, rf, persp);
-                    ro.face[pos] = *face;
-                    ro.bary[pos] = bary;
-                    ro.depth[pos] = tile.depth[i];
-                    ro.view_depth[pos] = vd;
-                    ro.dx[pos] = dx;
-                    ro.dy[pos] = dy;
-                    pos += 1;
-                    i += 1;
+                    *of = *face;
+                    *ob = bary;
+                    *od = *d;
+                    *ov = vd;
+                    *ox = dx;
+                    *oy = dy;
                 }
             }
         }
