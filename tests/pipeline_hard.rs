@@ -53,8 +53,10 @@ fn hard_render_matches_the_peer_reference() {
     );
 }
 
+type SmallScene = (Tensor<f64>, Arc<Vec<[u32; 3]>>, Tensor<f64>, [[f64; 4]; 4]);
+
 /// A small perspective scene with occlusion: two overlapping triangles and a quad.
-fn small_scene() -> (Tensor<f64>, Arc<Vec<[u32; 3]>>, Tensor<f64>, [[f64; 4]; 4]) {
+fn small_scene() -> SmallScene {
     let pos = vec![
         -0.8, -0.7, 0.0, 0.7, -0.6, 0.1, -0.1, 0.8, -0.1, // front triangle
         -0.5, -0.2, -0.6, 0.9, 0.1, -0.5, 0.2, 0.9, -0.7, // behind, partly occluded

@@ -1,3 +1,8 @@
+#![allow(
+    clippy::err_expect,
+    clippy::cloned_ref_to_slice_refs,
+    clippy::needless_range_loop
+)]
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 //! A user-defined op, written as a crate outside `autodiff` would write it: a fused softplus
 //! with a learnable temperature, `y = tau * ln(1 + exp(x / tau))`, with two inputs, an

@@ -1,3 +1,8 @@
+#![allow(
+    clippy::err_expect,
+    clippy::cloned_ref_to_slice_refs,
+    clippy::needless_range_loop
+)]
 //! A large graph (>= 100k elements, parallel kernels) gives bit-identical values and gradients
 //! in rayon pools of 1, 2 and 8 threads.
 

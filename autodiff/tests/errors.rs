@@ -1,3 +1,8 @@
+#![allow(
+    clippy::err_expect,
+    clippy::cloned_ref_to_slice_refs,
+    clippy::needless_range_loop
+)]
 //! Every shape or argument error is returned (never a panic), names the op and the shapes
 //! involved, and a poisoned loss returns the first error from backward.
 

@@ -1,3 +1,8 @@
+#![allow(
+    clippy::err_expect,
+    clippy::cloned_ref_to_slice_refs,
+    clippy::needless_range_loop
+)]
 //! Graph semantics of the tape: accumulation, diamonds, no_grad, detach, vjp, multi-output
 //! ops, skipped work for leaves without gradients, gradcheck modes, anomaly detection and NaN
 //! propagation.

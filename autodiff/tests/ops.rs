@@ -1,3 +1,8 @@
+#![allow(
+    clippy::err_expect,
+    clippy::cloned_ref_to_slice_refs,
+    clippy::needless_range_loop
+)]
 //! Every built-in op passes a full-Jacobian gradient check in f64, and its f32 run agrees with
 //! the f64 run to 1e-4 (normwise relative, values and gradients).
 

@@ -1,3 +1,8 @@
+#![allow(
+    clippy::err_expect,
+    clippy::cloned_ref_to_slice_refs,
+    clippy::needless_range_loop
+)]
 //! Adam and SGD with momentum recover the solution of a small least-squares problem, with a
 //! fresh tape every step (define-by-run).
 

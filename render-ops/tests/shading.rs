@@ -1,3 +1,4 @@
+#![allow(clippy::cloned_ref_to_slice_refs, clippy::needless_range_loop)]
 //! Shading and texturing: gradient checks of every op, fused against composed forms, hard
 //! cases, and inverse tasks (texture and SH recovery).
 
