@@ -120,3 +120,124 @@ fn gradcheck_command_reports_json_records() {
         assert!(r["max_abs_err"].as_f64().unwrap() < 1e-5);
     }
 }
+
+/// A textured, Phong-shaded plane scene in `dir` (mesh, 8 x 8 texture, JSON); returns the
+/// scene path. `texture: false` leaves the texture out.
+fn phong_scene(dir: &std::path::Path, texture: bool) -> std::path::PathBuf {
+    use tapestry::render_ops::mesh::Mesh;
+    let plane = Mesh::<f64>::grid_plane(4);
+    tapestry::render_ops::obj::write_obj(dir.join("plane.obj"), &plane).unwrap();
+    let tex = ndarray::Array3::from_shape_fn((8, 8, 3), |(r, c, k)| {
+        (40 + 20 * r + 25 * c + 60 * k) as f64 % 256.0 / 255.0
+    });
+    tapestry::render_ops::io::write_png(dir.join("tex.png"), &tex).unwrap();
+    let json = format!(
+        r#"{{"mesh": "plane.obj", "texture": {},
+        "camera": {{"eye": [0.3, 0.4, 3], "at": [0, 0, 0], "fov_y_deg": 50}},
+        "image": {{"width": 32, "height": 32, "background": [0, 0, 0.2]}},
+        "lights": [{{"type": "directional", "direction": [0.1, 0.2, -1], "color": [1, 1, 1]}},
+                   {{"type": "ambient", "color": [0.1, 0.1, 0.1]}}],
+        "material": {{"shading": "phong", "kd": [0.9, 0.9, 0.9], "ks": [0.5, 0.5, 0.5],
+                     "shininess": 16}},
+        "raster": {{"method": "hard"}}}}"#,
+        if texture { "\"tex.png\"" } else { "null" }
+    );
+    let path = dir.join(if texture {
+        "phong.json"
+    } else {
+        "phong_plain.json"
+    });
+    std::fs::write(&path, json).unwrap();
+    path
+}
+
+#[test]
+fn render_phong_and_grad_wrt_texture_and_camera() {
+    let dir = std::env::temp_dir().join(format!("tapestry-cli-phong-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene = phong_scene(&dir, true);
+    let out = tapestry()
+        .arg("render")
+        .arg(&scene)
+        .arg("--out")
+        .arg(dir.join("phong.png"))
+        .arg("--npy")
+        .arg(dir.join("phong.npy"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let img: tapestry::autodiff::Tensor<f64> =
+        tapestry::render_ops::io::read_npy(dir.join("phong.npy")).unwrap();
+    assert_eq!(img.shape(), &[32, 32, 4]);
+    assert!(img.iter().all(|v| v.is_finite()));
+    // Lit: the centre is brighter than kd * texel (ambient + diffuse + highlight), and the
+    // texture varies the colour across the plane.
+    let centre: Vec<f64> = (0..3).map(|k| img[[16, 16, k]]).collect();
+    assert!(
+        img[[16, 16, 3]] == 1.0 && centre.iter().all(|&c| c > 0.3),
+        "{centre:?}"
+    );
+    let spread = (0..32)
+        .map(|c| img[[16, c, 0]])
+        .fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
+    assert!(spread.1 - spread.0 > 0.1, "{spread:?}");
+    // The target: the same scene rendered, shifted by 0.1, as a 3-channel .npy.
+    let target = img.slice(ndarray::s![.., .., 0..3]).mapv(|v| v + 0.1);
+    tapestry::render_ops::io::write_npy(dir.join("target.npy"), &target).unwrap();
+    for (wrt, shape) in [("texture", vec![8, 8, 3]), ("camera", vec![2, 3])] {
+        let g = dir.join(format!("g_{wrt}.npy"));
+        let out = tapestry()
+            .arg("grad")
+            .arg(&scene)
+            .arg("--target")
+            .arg(dir.join("target.npy"))
+            .arg("--wrt")
+            .arg(wrt)
+            .arg("--out")
+            .arg(&g)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{wrt}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let stdout = String::from_utf8_lossy(&out.stdout).to_string();
+        let loss: f64 = stdout
+            .trim()
+            .strip_prefix("loss ")
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("{stdout}"));
+        // Every covered pixel is off by 0.1 in each channel, the background too.
+        assert!((loss - 0.01 * 32.0 * 32.0 * 3.0).abs() < 1e-9, "{loss}");
+        let g: tapestry::autodiff::Tensor<f64> = tapestry::render_ops::io::read_npy(&g).unwrap();
+        assert_eq!(g.shape(), &shape[..], "{wrt}");
+        assert!(g.iter().all(|v| v.is_finite()) && g.iter().any(|&v| v.abs() > 1e-6));
+        if wrt == "texture" {
+            // The render is 0.1 too dark everywhere: every visible texel should get brighter.
+            assert!(g.iter().filter(|&&v| v < 0.0).count() > 150, "{g:?}");
+        }
+    }
+    // --wrt texture on a scene without a texture: a one-line error.
+    let plain = phong_scene(&dir, false);
+    let out = tapestry()
+        .arg("grad")
+        .arg(&plain)
+        .arg("--target")
+        .arg(dir.join("target.npy"))
+        .args(["--wrt", "texture", "--out"])
+        .arg(dir.join("never.npy"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("no texture") && err.trim_end().lines().count() == 1,
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

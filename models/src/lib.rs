@@ -17,6 +17,7 @@
 
 pub mod error;
 pub mod face;
+pub mod fit;
 pub mod io;
 pub mod morphable;
 

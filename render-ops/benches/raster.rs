@@ -1,109 +1,84 @@
 //! Forward (and forward + backward) speed of the hard rasterizer on icospheres.
 //!
-//! Scenes: unit icosphere (icosahedron subdivided 4 and 6 times: 5120 and 81920 faces) at distance
-//! 3, fov_y 48.9 degrees, 256x256 and 512x512, f32, K = 1, on rayon pools of 1 and 2 threads,
-//! without and with back-face culling.
+//! Scenes: the peers' benchmark spheres (`Mesh::icosphere`, identical to `peers/scene_gen.py`'s
+//! ico5k and ico80k: 5120 and 81920 faces) and a 1.3M-face sphere (8 subdivisions), seen with
+//! the peers' camera (eye (0, 0, -3), up (0, -1, 0), fov_y 48.888 degrees, near 1, far 100),
+//! f32, K = 1, on rayon pools of 1 and 2 threads, without and with back-face culling (DEODR's
+//! setting). `scripts/bench-raster-peers.sh` runs this bench and DEODR's forward side by side.
+//!
+//! ```text
+//! cargo bench -p tapestry-render-ops --bench raster -- --warm-up-time 1 --measurement-time 3
+//! ```
 
-use std::collections::HashMap;
+use std::sync::Arc;
 
+use autodiff::ndarray::{ArrayD, IxDyn};
+use autodiff::Tape;
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use glam::{DMat4, DVec3, DVec4};
+use render_ops::blend::blend_hard;
+use render_ops::camera::Camera;
+use render_ops::interpolate::interpolate;
+use render_ops::mesh::Mesh;
 use render_ops::raster::{rasterize, rasterize_backward, RasterSettings};
+use render_ops::transform::to_clip;
 
-/// Unit icosphere with outward counter-clockwise faces (20 * 4^n faces).
-fn icosphere(n: usize) -> (Vec<DVec3>, Vec<[u32; 3]>) {
-    let t = (1.0 + 5f64.sqrt()) / 2.0;
-    let mut v: Vec<DVec3> = [
-        [-1.0, t, 0.0],
-        [1.0, t, 0.0],
-        [-1.0, -t, 0.0],
-        [1.0, -t, 0.0],
-        [0.0, -1.0, t],
-        [0.0, 1.0, t],
-        [0.0, -1.0, -t],
-        [0.0, 1.0, -t],
-        [t, 0.0, -1.0],
-        [t, 0.0, 1.0],
-        [-t, 0.0, -1.0],
-        [-t, 0.0, 1.0],
-    ]
-    .iter()
-    .map(|p| DVec3::from_array(*p).normalize())
-    .collect();
-    let mut f: Vec<[u32; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..n {
-        let mut mid: HashMap<(u32, u32), u32> = HashMap::new();
-        let mut nf = Vec::with_capacity(f.len() * 4);
-        for &[a, b, c] in &f {
-            let mut m = |x: u32, y: u32| {
-                *mid.entry((x.min(y), x.max(y))).or_insert_with(|| {
-                    v.push((v[x as usize] + v[y as usize]).normalize());
-                    (v.len() - 1) as u32
-                })
-            };
-            let (ab, bc, ca) = (m(a, b), m(b, c), m(c, a));
-            nf.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
-        }
-        f = nf;
-    }
-    for face in &mut f {
-        let [a, b, c] = face.map(|i| v[i as usize]);
-        if (b - a).cross(c - a).dot(a) < 0.0 {
-            face.swap(1, 2);
-        }
-    }
-    (v, f)
+/// The peers' camera: view-projection matrix (row-major).
+fn peers_view_proj() -> [[f64; 4]; 4] {
+    let fov = 2.0 * (0.5f64 / 1.1).atan();
+    Camera::perspective_look_at(
+        [0.0, 0.0, -3.0],
+        [0.0; 3],
+        [0.0, -1.0, 0.0],
+        fov,
+        1.0,
+        1.0,
+        100.0,
+    )
+    .expect("valid camera")
+    .view_proj()
 }
 
-fn scene(subdiv: usize) -> (Vec<[f32; 4]>, Vec<[u32; 3]>) {
-    let (v, f) = icosphere(subdiv);
-    let view = DMat4::look_at_rh(DVec3::new(0.0, 0.0, 3.0), DVec3::ZERO, DVec3::Y);
-    let proj = DMat4::perspective_rh_gl(48.9f64.to_radians(), 1.0, 0.1, 100.0);
-    let m = proj * view;
-    let clip = v
+/// Clip-space positions and faces of the unit icosphere with `subdiv` subdivisions under the
+/// peers' camera.
+fn scene(subdiv: u32) -> (Vec<[f32; 4]>, Vec<[u32; 3]>) {
+    let mesh = Mesh::<f64>::icosphere(subdiv, 1.0);
+    let m = peers_view_proj();
+    let clip = mesh
+        .positions
         .iter()
-        .map(|p| (m * DVec4::new(p.x, p.y, p.z, 1.0)).as_vec4().to_array())
+        .map(|p| {
+            let mut c = [0f32; 4];
+            for (r, ci) in c.iter_mut().enumerate() {
+                *ci = (m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]) as f32;
+            }
+            c
+        })
         .collect();
-    (clip, f)
+    (clip, mesh.faces)
 }
 
-fn bench(c: &mut Criterion) {
+fn pool(threads: usize) -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("thread pool")
+}
+
+fn bench_forward(c: &mut Criterion) {
     let mut g = c.benchmark_group("raster_forward_f32");
-    for subdiv in [4, 6] {
+    g.sample_size(20);
+    let cases: [(u32, &[usize]); 3] = [(4, &[256, 512]), (6, &[256, 512]), (8, &[1024])];
+    for (subdiv, sizes) in cases {
         let (clip, faces) = scene(subdiv);
-        for size in [256, 512] {
+        for &size in sizes {
             // Default settings (both layers of the sphere rasterized), then back-face culling as
             // in DEODR's peer setting.
-            for (cull, threads) in [(false, 1), (false, 2), (true, 2)] {
+            for (cull, threads) in [(false, 1), (false, 2), (true, 1), (true, 2)] {
                 let s = RasterSettings {
                     cull_backfaces: cull,
                     ..RasterSettings::new(size, size)
                 };
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(threads)
-                    .build()
-                    .unwrap();
+                let pool = pool(threads);
                 let id = format!(
                     "{}k_faces/{size}px/{threads}thr{}",
                     faces.len() / 1000,
@@ -116,6 +91,9 @@ fn bench(c: &mut Criterion) {
         }
     }
     g.finish();
+}
+
+fn bench_backward(c: &mut Criterion) {
     let mut g = c.benchmark_group("raster_backward_f32");
     for subdiv in [4, 6] {
         let (clip, faces) = scene(subdiv);
@@ -123,10 +101,7 @@ fn bench(c: &mut Criterion) {
         let fr = rasterize(&clip, &faces, &s).unwrap();
         let gb = vec![[1.0f32, -0.5, 0.25]; fr.len()];
         let gd = vec![1.0f32; fr.len()];
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(2)
-            .build()
-            .unwrap();
+        let pool = pool(2);
         let id = format!("{}k_faces/512px/2thr", faces.len() / 1000);
         g.bench_function(BenchmarkId::from_parameter(id), |b| {
             b.iter(|| {
@@ -139,5 +114,56 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+/// The whole hard pipeline as DEODR's `render` does it (world positions -> clip space ->
+/// rasterize -> interpolate vertex colours -> composite over the background), and the same
+/// plus the backward of `sum((image - target)^2)` to positions and colours (DEODR's
+/// `render_backward`), f32, with culling (DEODR's setting) on 1 and 2 threads.
+fn bench_pipeline(c: &mut Criterion) {
+    let mut g = c.benchmark_group("render_hard_f32");
+    g.sample_size(20);
+    let m = peers_view_proj();
+    for (subdiv, size) in [(4u32, 256usize), (4, 512), (6, 256), (6, 512)] {
+        let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
+        let v = mesh.positions.len();
+        let pos = ArrayD::from_shape_vec(
+            IxDyn(&[v, 3]),
+            mesh.positions.iter().flatten().copied().collect(),
+        )
+        .unwrap();
+        let col = pos.mapv(|x| 0.5 + 0.5 * x);
+        let target = ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32);
+        let faces = Arc::new(mesh.faces.clone());
+        let s = RasterSettings {
+            cull_backfaces: true,
+            ..RasterSettings::new(size, size)
+        };
+        for threads in [1, 2] {
+            let pool = pool(threads);
+            let id = format!("{}k_faces/{size}px/{threads}thr", mesh.faces.len() / 1000);
+            let run = |grad: bool| {
+                let tape = Tape::<f32>::new();
+                let p = tape.var(pos.clone(), grad);
+                let cv = tape.var(col.clone(), grad);
+                let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s)?;
+                let img = blend_hard(interpolate(cv, &r)?, &r.fragments, &[0.0; 3])?;
+                if grad {
+                    let loss = (img - tape.constant(target.clone())).square().sum();
+                    let gr = tape.backward(loss)?;
+                    Ok::<_, render_ops::error::RenderError>(gr.get(p).map(|t| t.len()))
+                } else {
+                    Ok(Some(img.value()?.len()))
+                }
+            };
+            g.bench_function(BenchmarkId::new("forward", &id), |b| {
+                b.iter(|| pool.install(|| run(false).unwrap()))
+            });
+            g.bench_function(BenchmarkId::new("forward_backward", &id), |b| {
+                b.iter(|| pool.install(|| run(true).unwrap()))
+            });
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench_forward, bench_backward, bench_pipeline);
 criterion_main!(benches);

@@ -12,8 +12,11 @@ use crate::error::RenderError;
 use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
 use crate::rasterize::rasterize;
-use crate::scene::{Method, Scene, Shading};
-use crate::soft::{softras, SoftSettings};
+use crate::scene::{Method, Scene};
+use crate::shade::stage::{texture_rgb, SceneShading, SCENE_SAMPLER};
+use crate::shade::{fragment_inputs, vertex_normals, MeshAttributes};
+use crate::soft::{dibr, softras, DibrSettings, SoftSettings};
+use crate::texture::Texture;
 use crate::transform::to_clip;
 
 /// The differentiable inputs of a scene render.
@@ -22,6 +25,12 @@ pub struct SceneVars<'t, T: Real> {
     pub positions: Var<'t, T>,
     /// Vertex colours [V, 3].
     pub colors: Var<'t, T>,
+    /// The scene's texture [H, W, C] (values in [0, 1] for PNG); `None` without a texture.
+    pub texture: Option<Var<'t, T>>,
+    /// The camera's eye and look-at point, rows `[2, 3]` = [eye; at] (world space). The up
+    /// vector, field of view and clip planes stay those of the scene. When this variable
+    /// requires a gradient the view matrix is built on the tape ([`Scene::clip`]).
+    pub camera: Var<'t, T>,
 }
 
 /// Which scene inputs should carry gradients.
@@ -31,6 +40,10 @@ pub struct Wrt {
     pub positions: bool,
     /// Vertex colours.
     pub colors: bool,
+    /// The texture texels (`[H, W, C]`; ignored when the scene has no texture).
+    pub texture: bool,
+    /// The camera's eye and look-at point (`[2, 3]`).
+    pub camera: bool,
 }
 
 impl<T: Real> Scene<T> {
@@ -67,9 +80,25 @@ impl<T: Real> Scene<T> {
             self.mesh.colors.iter().flatten().copied().collect()
         };
         let col = ArrayD::from_shape_vec(IxDyn(&[v, 3]), col).expect("v x 3");
+        let texture = self
+            .texture
+            .as_ref()
+            .map(|t| tape.var(t.clone().into_dyn(), wrt.texture));
+        let c = &self.desc.camera;
+        let cam = ArrayD::from_shape_vec(
+            IxDyn(&[2, 3]),
+            c.eye
+                .iter()
+                .chain(&c.at)
+                .map(|&x| T::from_f64c(x))
+                .collect(),
+        )
+        .expect("2 x 3");
         SceneVars {
             positions: tape.var(pos, wrt.positions),
             colors: tape.var(col, wrt.colors),
+            texture,
+            camera: tape.var(cam, wrt.camera),
         }
     }
 
@@ -77,25 +106,14 @@ impl<T: Real> Scene<T> {
     /// coverage) as a tape variable.
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
         let method = self.desc.raster.method;
-        if !matches!(method, Method::Hard | Method::SoftRas) {
+        if !matches!(method, Method::Hard | Method::SoftRas | Method::Dibr) {
             return Err(RenderError::Unsupported(format!(
-                "raster.method '{}' is not available in this build; available: hard, softras",
+                "raster.method '{}' is not available in this build; available: hard, softras, dibr",
                 method.name()
             )));
         }
-        if self.desc.material.shading != Shading::None {
-            return Err(RenderError::Unsupported(format!(
-                "material.shading '{:?}' is not available in this build; available: none",
-                self.desc.material.shading
-            )));
-        }
-        if self.texture.is_some() {
-            return Err(RenderError::Unsupported(
-                "textures are not available in this build; use vertex colours".into(),
-            ));
-        }
         let faces = Arc::new(self.mesh.faces.clone());
-        let clip = to_clip(vars.positions, &self.camera.view_proj());
+        let clip = self.clip(vars.positions, vars);
         let kd = self.desc.material.kd.map(T::from_f64c);
         let kd = vars
             .positions
@@ -115,10 +133,159 @@ impl<T: Real> Scene<T> {
             s.threshold = r.threshold;
             s.perspective_correct = r.perspective_correct;
             s.background = self.desc.image.background.to_vec();
-            return softras(clip, vars.colors * kd, faces, &s);
+            return softras(clip, self.vertex_colors(vars, kd)?, faces, &s);
         }
-        let r = rasterize(clip, faces, &self.raster_settings())?;
-        let colors = interpolate(vars.colors * kd, &r)?;
-        blend_hard(colors, &r.fragments, &self.background())
+        if method == Method::Dibr {
+            // DIB-R: the hard render's RGB (shaded per fragment, textured) with the soft
+            // silhouette as alpha (render_ops::soft::dibr).
+            let r = &self.desc.raster;
+            let mut s = DibrSettings::new(
+                self.desc.image.width as usize,
+                self.desc.image.height as usize,
+            );
+            s.delta = r.delta;
+            s.threshold = r.threshold;
+            s.cull_backfaces = r.cull_backfaces;
+            let alpha = dibr::dibr_alpha(clip, faces, &s)?;
+            return dibr::composite(self.render_hard(vars, clip, kd)?, alpha);
+        }
+        self.render_hard(vars, clip, kd)
+    }
+}
+
+/// The stages shared by the raster methods: camera, per-vertex (Gouraud) shading for methods
+/// that take per-vertex attributes, and the per-fragment path of the hard method.
+impl<T: Real> Scene<T> {
+    /// Homogeneous clip coordinates `[N, 4]` of world points `[N, 3]` under the scene's camera.
+    /// When `vars.camera` requires a gradient, the view matrix is built on the tape from its
+    /// eye and look-at rows (`look_at` of [`crate::camera`], the scene's `up`), so gradients
+    /// reach the camera; otherwise the camera's constant matrix is used.
+    pub fn clip<'t>(&self, points: Var<'t, T>, vars: &SceneVars<'t, T>) -> Var<'t, T> {
+        if !vars.camera.requires_grad() {
+            return to_clip(points, &self.camera.view_proj());
+        }
+        let t = points.tape();
+        let eps = T::from_f64c(1e-12);
+        let eye = vars.camera.slice(0, 0, 1).reshape(&[3]);
+        let at = vars.camera.slice(0, 1, 2).reshape(&[3]);
+        let up = t.constant(
+            ArrayD::from_shape_vec(
+                IxDyn(&[3]),
+                self.desc
+                    .camera
+                    .up
+                    .iter()
+                    .map(|&x| T::from_f64c(x))
+                    .collect(),
+            )
+            .expect("3"),
+        );
+        let f = (at - eye).normalize(eps);
+        let s = f.cross(up).normalize(eps);
+        let u = s.cross(f);
+        // Rows of the view rotation: s, u, -f; view point = R (p - eye).
+        let rot = t.stack(&[s, u, -f], 0);
+        let view = (points - eye).matmul(rot.t());
+        let n = points.shape().first().copied().unwrap_or(0);
+        let ones = t.constant(ArrayD::from_elem(IxDyn(&[n, 1]), T::one()));
+        let p = self.camera.proj_rows();
+        let pt = ArrayD::from_shape_fn(IxDyn(&[4, 4]), |i| T::from_f64c(p[i[1]][i[0]]));
+        t.concat(&[view, ones], 1).matmul(t.constant(pt))
+    }
+
+    /// The eye `[3]` (row 0 of `vars.camera`).
+    pub fn eye<'t>(&self, vars: &SceneVars<'t, T>) -> Var<'t, T> {
+        vars.camera.slice(0, 0, 1).reshape(&[3])
+    }
+
+    /// Per-vertex colours `[V, 3]` for raster methods that take per-vertex attributes (the
+    /// soft methods): the albedo `kd` times the vertex colours, shaded per vertex with the
+    /// scene's material and lights (Gouraud shading: the lighting is evaluated at the
+    /// vertices, with area-weighted vertex normals, and interpolated by the raster method).
+    /// Textures need per-fragment uvs and are not supported here: an `Unsupported` error.
+    pub fn vertex_colors<'t>(
+        &self,
+        vars: &SceneVars<'t, T>,
+        kd: Var<'t, T>,
+    ) -> Result<Var<'t, T>, RenderError> {
+        if vars.texture.is_some() {
+            return Err(RenderError::Unsupported(format!(
+                "textures are sampled per fragment: raster.method '{}' takes per-vertex \
+                 colours; use method 'hard' for textured scenes",
+                self.desc.raster.method.name()
+            )));
+        }
+        let albedo = vars.colors * kd;
+        let shading = SceneShading::new(
+            vars.positions.tape(),
+            &self.desc.material,
+            &self.desc.lights,
+        );
+        if !shading.is_lit() {
+            return Ok(albedo);
+        }
+        let faces = Arc::new(self.mesh.faces.clone());
+        let normals = vertex_normals(vars.positions, &faces);
+        shading.apply(vars.positions, normals, albedo, self.eye(vars))
+    }
+
+    /// The hard method: rasterize `clip` (`[V, 4]`, of `vars.positions`), then per fragment
+    /// interpolate, texture, shade (Phong shading: lighting per fragment with interpolated
+    /// area-weighted vertex normals), and composite with the z-buffer blend.
+    ///
+    /// A textured scene splits the mesh at uv seams ([`crate::mesh::Mesh::unified`]): the
+    /// split vertices gather the clip coordinates, colours and normals of their source
+    /// vertices, so gradients sum back onto `vars.positions` / `vars.colors`. The texture is
+    /// sampled with [`SCENE_SAMPLER`] (bilinear, repeat).
+    fn render_hard<'t>(
+        &self,
+        vars: &SceneVars<'t, T>,
+        clip: Var<'t, T>,
+        kd: Var<'t, T>,
+    ) -> Result<Var<'t, T>, RenderError> {
+        let t = vars.positions.tape();
+        let shading = SceneShading::new(t, &self.desc.material, &self.desc.lights);
+        let settings = self.raster_settings();
+        let bg = self.background();
+        let Some(texels) = vars.texture else {
+            let faces = Arc::new(self.mesh.faces.clone());
+            let r = rasterize(clip, faces.clone(), &settings)?;
+            if !shading.is_lit() {
+                let colors = interpolate(vars.colors * kd, &r)?;
+                return blend_hard(colors, &r.fragments, &bg);
+            }
+            let mesh = MeshAttributes::new(vars.positions)
+                .with_normals(vertex_normals(vars.positions, &faces))
+                .with_attribute("color", vars.colors);
+            let f = fragment_inputs(&r, &mesh, self.eye(vars))?;
+            let albedo = f.attribute("color").expect("set above") * kd;
+            let color = shading.apply(f.position, f.normal, albedo, f.eye)?;
+            return blend_hard(color, &r.fragments, &bg);
+        };
+        if !self.mesh.has_uvs() {
+            return Err(RenderError::Unsupported(format!(
+                "the scene has a texture but the mesh {} has no uvs ('vt' lines)",
+                self.mesh_path.display()
+            )));
+        }
+        let unified = self.mesh.unified()?;
+        let index: Vec<usize> = unified.position_index.iter().map(|&i| i as usize).collect();
+        let faces = Arc::new(unified.mesh.faces.clone());
+        let uvs = ArrayD::from_shape_vec(
+            IxDyn(&[unified.mesh.uvs.len(), 2]),
+            unified.mesh.uvs.iter().flatten().copied().collect(),
+        )
+        .expect("v x 2");
+        let r = rasterize(clip.index_select(0, &index), faces, &settings)?;
+        let normals = vertex_normals(vars.positions, &Arc::new(self.mesh.faces.clone()));
+        let mesh = MeshAttributes::new(vars.positions.index_select(0, &index))
+            .with_normals(normals.index_select(0, &index))
+            .with_uvs(t.constant(uvs))
+            .with_attribute("color", vars.colors.index_select(0, &index));
+        let f = fragment_inputs(&r, &mesh, self.eye(vars))?;
+        let tex = texture_rgb(f.sample(&Texture::new(texels, SCENE_SAMPLER)))?;
+        let albedo = f.attribute("color").expect("set above") * kd * tex;
+        let color = shading.apply(f.position, f.normal, albedo, f.eye)?;
+        blend_hard(color, &r.fragments, &bg)
     }
 }

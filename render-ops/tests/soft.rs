@@ -224,6 +224,7 @@ fn matches_softras_reference() {
         render_ops::pipeline::Wrt {
             positions: true,
             colors: true,
+            ..Default::default()
         },
     );
     let clip = to_clip(vars.positions, &scene.camera.view_proj());

@@ -1,4 +1,6 @@
-//! `tapestry grad`: L = sum over pixels and channels of (render - target)^2 and its gradient.
+//! `tapestry grad`: L = sum over pixels and channels of (render - target)^2 and its gradient
+//! with respect to the vertex positions `[V, 3]`, vertex colours `[V, 3]`, texture texels
+//! `[H, W, C]` or camera (eye and look-at point, `[2, 3]`).
 
 use std::path::Path;
 use std::process::ExitCode;
@@ -32,8 +34,19 @@ pub fn run(scene: &Path, target: &Path, wrt: WrtArg, out: &Path) -> Result<ExitC
         Wrt {
             positions: wrt == WrtArg::Positions,
             colors: wrt == WrtArg::Colors,
+            texture: wrt == WrtArg::Texture,
+            camera: wrt == WrtArg::Camera,
         },
     );
+    let texture = match (wrt, vars.texture) {
+        (WrtArg::Texture, None) => {
+            return Err(CliError::Message(format!(
+                "--wrt texture: the scene {} has no texture",
+                scene.source
+            )))
+        }
+        (_, t) => t,
+    };
     let img = scene.render(&vars)?;
     let img = if ts[2] == 3 { img.slice(2, 0, 3) } else { img };
     let loss = (img - tape.constant(target_img.into_dyn())).square().sum();
@@ -42,6 +55,8 @@ pub fn run(scene: &Path, target: &Path, wrt: WrtArg, out: &Path) -> Result<ExitC
     let g = match wrt {
         WrtArg::Positions => grads.wrt(vars.positions),
         WrtArg::Colors => grads.wrt(vars.colors),
+        WrtArg::Texture => grads.wrt(texture.expect("checked above")),
+        WrtArg::Camera => grads.wrt(vars.camera),
     };
     write_npy(out, &g)?;
     Ok(ExitCode::SUCCESS)

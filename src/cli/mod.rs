@@ -1,6 +1,7 @@
 //! The `tapestry` command line (see CONVENTIONS.md): argument parsing and the commands.
 //! Every command returns a typed error that `main` prints as one line on stderr.
 
+mod fit_face;
 mod grad;
 mod gradcheck;
 mod render;
@@ -27,6 +28,10 @@ pub enum WrtArg {
     Positions,
     /// Vertex colours, written as [V, 3].
     Colors,
+    /// Texture texels, written as [H, W, C] (the scene needs a texture).
+    Texture,
+    /// Camera eye and look-at point, written as [2, 3] (rows eye, at).
+    Camera,
 }
 
 /// The commands.
@@ -69,6 +74,33 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Fit the shipped face model to a synthetic target (default) or to a photo with 2D
+    /// landmarks; writes params.json, fit.png, overlay.png, loss_curve.svg and report.json.
+    FitFace {
+        /// Target photo (PNG, or .npy [H, W, C]); without it a synthetic target is made.
+        #[arg(long, requires = "landmarks")]
+        target: Option<PathBuf>,
+        /// Landmarks of the photo: one `x y` line per landmark in pixels (468 lines: one per
+        /// model vertex, MediaPipe face-mesh order).
+        #[arg(long, requires = "target")]
+        landmarks: Option<PathBuf>,
+        /// Output folder.
+        #[arg(long, default_value = "fit-face-out")]
+        out: PathBuf,
+        /// Iterations in all: the first half fits landmarks only, the second all terms.
+        #[arg(long, default_value_t = 200)]
+        iters: usize,
+        /// Seed of the synthetic target.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Raster method (hard, softras, dibr).
+        #[arg(long, default_value = "hard")]
+        method: String,
+        /// Size in pixels of the synthetic target (square); photos larger than this are
+        /// downscaled by an integer factor to fit.
+        #[arg(long, default_value_t = 256)]
+        size: usize,
+    },
 }
 
 /// Errors of the command line, each printed as one line.
@@ -102,5 +134,22 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
             out,
         } => grad::run(&scene, &target, wrt, &out),
         Command::Gradcheck { op, all: _, json } => gradcheck::run(op.as_deref(), json),
+        Command::FitFace {
+            target,
+            landmarks,
+            out,
+            iters,
+            seed,
+            method,
+            size,
+        } => fit_face::run(&fit_face::Args {
+            target,
+            landmarks,
+            out,
+            iters,
+            seed,
+            method,
+            size,
+        }),
     }
 }

@@ -239,6 +239,15 @@ impl Binary {
     }
 }
 
+/// `x` broadcast to `shape` (a plain view when it already has that shape).
+fn bview<'a, T: Real>(x: &'a Tensor<T>, shape: &[usize]) -> ndarray::ArrayViewD<'a, T> {
+    if x.shape() == shape {
+        x.view()
+    } else {
+        x.broadcast(IxDyn(shape)).expect("forward checked")
+    }
+}
+
 /// The op recording a [`Binary`] kind.
 pub struct BinaryOp(pub Binary);
 
@@ -249,9 +258,15 @@ impl<T: Real> Op<T> for BinaryOp {
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
         let (a, b) = (inputs[0], inputs[1]);
-        let shape = broadcast_shapes(self.0.name(), a.shape(), b.shape())?;
-        let av = a.broadcast(IxDyn(&shape)).expect("broadcast checked");
-        let bv = b.broadcast(IxDyn(&shape)).expect("broadcast checked");
+        let (av, bv) = if a.shape() == b.shape() {
+            (a.view(), b.view())
+        } else {
+            let shape = broadcast_shapes(self.0.name(), a.shape(), b.shape())?;
+            (
+                a.broadcast(IxDyn(&shape)).expect("broadcast checked"),
+                b.broadcast(IxDyn(&shape)).expect("broadcast checked"),
+            )
+        };
         let half = T::from_f64c(0.5);
         let y = match self.0 {
             Binary::Add => map2(&av, &bv, |x, y| x + y),
@@ -286,8 +301,7 @@ impl<T: Real> Op<T> for BinaryOp {
         let (a, b) = (ctx.inputs[0], ctx.inputs[1]);
         let g = ctx.grad_outputs[0];
         let shape = g.shape();
-        let av = a.broadcast(IxDyn(shape)).expect("forward checked");
-        let bv = b.broadcast(IxDyn(shape)).expect("forward checked");
+        let (av, bv) = (bview(a, shape), bview(b, shape));
         let gv = g.view();
         let (z, one, half) = (T::zero(), T::one(), T::from_f64c(0.5));
         let mut out = vec![None, None];

@@ -26,6 +26,7 @@
 //! - [`sh`]: order-2 real spherical-harmonics irradiance (Ramamoorthi and Hanrahan 2001);
 //! - [`shader`]: programmable shaders: [`FragmentInputs`] and [`run_shader`] / [`render_shader`];
 //! - [`outputs`]: normal maps, depth and PNCC;
+//! - [`stage`]: the shading stage of the scene pipeline (scene material and lights);
 //! - [`suite`]: gradient-check cases of these ops and of [`crate::texture`] for
 //!   `tapestry gradcheck`.
 
@@ -35,6 +36,7 @@ pub mod outputs;
 pub mod phong;
 pub mod sh;
 pub mod shader;
+pub mod stage;
 pub mod suite;
 
 pub use lights::{

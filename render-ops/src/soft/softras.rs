@@ -19,9 +19,11 @@ use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor,
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
+use super::common::{
+    closest_backward, closest_on_boundary, cross, ndc_to_clip, pixel_centre, project, Closest,
+    TileBins, TILE,
+};
 use crate::error::RenderError;
-
-const TILE: usize = 16;
 
 /// Settings of [`softras`].
 #[derive(Clone, Debug, PartialEq)]
@@ -161,11 +163,7 @@ struct Prep {
     depth: Vec<f64>,
     attrs: Vec<f64>,
     channels: usize,
-    tiles_x: usize,
-    /// Faces per tile, in increasing face order.
-    tiles: Vec<Vec<u32>>,
-    /// Pixel box (c0, c1, r0, r1) per face, inclusive; c0 > c1 when skipped.
-    rects: Vec<[i64; 4]>,
+    bins: TileBins,
 }
 
 /// One face at one pixel.
@@ -175,9 +173,7 @@ struct Sample {
     li: u32,
     x: f64,
     dd: f64,
-    edge: u8,
-    t: f64,
-    r: [f64; 2],
+    closest: Closest,
     w: [f64; 3],
     wn: [f64; 3],
     sumwc: f64,
@@ -208,74 +204,30 @@ fn softplus(x: f64) -> f64 {
     x.max(0.0) + (-x.abs()).exp().ln_1p()
 }
 
-#[inline]
-fn cross(u: [f64; 2], v: [f64; 2]) -> f64 {
-    u[0] * v[1] - u[1] * v[0]
-}
-
 fn prepare<T: Real>(
     clip: &Tensor<T>,
     attrs: &Tensor<T>,
     faces: &[[u32; 3]],
     s: &SoftSettings,
 ) -> Prep {
-    let nv = clip.shape()[0];
     let channels = attrs.shape()[1];
-    let mut ndc = Vec::with_capacity(nv);
-    let mut depth = Vec::with_capacity(nv);
-    for r in clip.outer_iter() {
-        let w = r[3].to_f64c();
-        ndc.push([r[0].to_f64c() / w, r[1].to_f64c() / w]);
-        depth.push(w);
-    }
+    let (ndc, depth) = project(clip);
     let attrs: Vec<f64> = attrs.iter().map(|a| a.to_f64c()).collect();
-    let (wf, hf) = (s.width as f64, s.height as f64);
-    let dmax = s.cutoff_sq().sqrt();
-    let tiles_x = s.width.div_ceil(TILE);
-    let tiles_y = s.height.div_ceil(TILE);
-    let mut tiles = vec![Vec::new(); tiles_x * tiles_y];
-    let mut rects = vec![[1, 0, 1, 0]; faces.len()];
-    for (fi, f) in faces.iter().enumerate() {
-        let p = f.map(|i| ndc[i as usize]);
-        let ok = f.iter().all(|&i| depth[i as usize] > 0.0)
-            && p.iter().all(|q| q[0].is_finite() && q[1].is_finite());
-        if !ok {
-            continue;
-        }
-        let area = cross(
-            [p[1][0] - p[0][0], p[1][1] - p[0][1]],
-            [p[2][0] - p[0][0], p[2][1] - p[0][1]],
-        );
-        if area == 0.0 || !area.is_finite() {
-            continue;
-        }
-        let xmin = p.iter().map(|q| q[0]).fold(f64::INFINITY, f64::min) - dmax;
-        let xmax = p.iter().map(|q| q[0]).fold(f64::NEG_INFINITY, f64::max) + dmax;
-        let ymin = p.iter().map(|q| q[1]).fold(f64::INFINITY, f64::min) - dmax;
-        let ymax = p.iter().map(|q| q[1]).fold(f64::NEG_INFINITY, f64::max) + dmax;
-        let c0 = ((xmin + 1.0) * wf / 2.0 - 0.5).ceil().max(0.0);
-        let c1 = ((xmax + 1.0) * wf / 2.0 - 0.5).floor().min(wf - 1.0);
-        let r0 = ((1.0 - ymax) * hf / 2.0 - 0.5).ceil().max(0.0);
-        let r1 = ((1.0 - ymin) * hf / 2.0 - 0.5).floor().min(hf - 1.0);
-        if !(c0 <= c1 && r0 <= r1) {
-            continue;
-        }
-        let rect = [c0 as i64, c1 as i64, r0 as i64, r1 as i64];
-        rects[fi] = rect;
-        for ty in rect[2] as usize / TILE..=rect[3] as usize / TILE {
-            for tx in rect[0] as usize / TILE..=rect[1] as usize / TILE {
-                tiles[ty * tiles_x + tx].push(fi as u32);
-            }
-        }
-    }
+    let bins = TileBins::new(
+        &ndc,
+        &depth,
+        faces,
+        s.width,
+        s.height,
+        s.cutoff_sq().sqrt(),
+        false,
+    );
     Prep {
         ndc,
         depth,
         attrs,
         channels,
-        tiles_x,
-        tiles,
-        rects,
+        bins,
     }
 }
 
@@ -296,14 +248,9 @@ impl SoftRasOp {
         out.clear();
         cols.clear();
         let c = prep.channels;
-        let p = [
-            2.0 * (col as f64 + 0.5) / s.width as f64 - 1.0,
-            1.0 - 2.0 * (row as f64 + 0.5) / s.height as f64,
-        ];
-        let (ci, ri) = (col as i64, row as i64);
+        let p = pixel_centre(row, col, s.width, s.height);
         for (li, &fi) in tile_faces.iter().enumerate() {
-            let rc = prep.rects[fi as usize];
-            if ci < rc[0] || ci > rc[1] || ri < rc[2] || ri > rc[3] {
+            if !prep.bins.reaches(fi as usize, row, col) {
                 continue;
             }
             let f = self.faces[fi as usize];
@@ -316,27 +263,11 @@ impl SoftRasOp {
             let area = n[0] + n[1] + n[2];
             let w = n.map(|x| x / area);
             let inside = w.iter().all(|&x| x >= 0.0);
-            // Closest point on the boundary.
-            let mut best = (f64::INFINITY, 0u8, 0.0, [0.0; 2]);
-            for k in 0..3 {
-                let (a, b) = (v[k], v[(k + 1) % 3]);
-                let e = [b[0] - a[0], b[1] - a[1]];
-                let ee = e[0] * e[0] + e[1] * e[1];
-                let t = if ee > 0.0 {
-                    (((p[0] - a[0]) * e[0] + (p[1] - a[1]) * e[1]) / ee).clamp(0.0, 1.0)
-                } else {
-                    0.0
-                };
-                let r = [p[0] - a[0] - t * e[0], p[1] - a[1] - t * e[1]];
-                let d2 = r[0] * r[0] + r[1] * r[1];
-                if d2 < best.0 {
-                    best = (d2, k as u8, t, r);
-                }
-            }
+            let best = closest_on_boundary(&v, p);
             let x = if inside {
-                best.0 / s.sigma
+                best.d2 / s.sigma
             } else {
-                -best.0 / s.sigma
+                -best.d2 / s.sigma
             };
             let dd = sigmoid(x);
             if !inside && dd < s.threshold {
@@ -365,9 +296,7 @@ impl SoftRasOp {
                 li: li as u32,
                 x,
                 dd,
-                edge: best.1,
-                t: best.2,
-                r: best.3,
+                closest: best,
                 w,
                 wn,
                 sumwc,
@@ -429,8 +358,8 @@ impl<T: Real> Op<T> for SoftRasOp {
                 debug_assert!(ty < tiles_y);
                 let mut samples = Vec::new();
                 let mut cols = Vec::new();
-                for tx in 0..prep.tiles_x {
-                    let tf = &prep.tiles[ty * prep.tiles_x + tx];
+                for tx in 0..prep.bins.tiles_x {
+                    let tf = &prep.bins.tiles[ty * prep.bins.tiles_x + tx];
                     for lr in 0..TILE.min(h - ty * TILE) {
                         for col in tx * TILE..(tx * TILE + TILE).min(w) {
                             this.pixel_samples(
@@ -474,17 +403,17 @@ impl<T: Real> Op<T> for SoftRasOp {
         let go = ctx.grad_outputs[0].as_standard_layout();
         let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
         let stride = 3 * (4 + c);
-        let ntiles = prep.tiles.len();
+        let ntiles = prep.bins.tiles.len();
         // Per tile: accumulators per (tile face, corner) of [dX, dY, dZ, dW, dattr...].
         let accs: Vec<Vec<f64>> = (0..ntiles)
             .into_par_iter()
             .map(|t| {
-                let tf = &prep.tiles[t];
+                let tf = &prep.bins.tiles[t];
                 let mut acc = vec![0.0; tf.len() * stride];
                 if tf.is_empty() {
                     return acc;
                 }
-                let (tx, ty) = (t % prep.tiles_x, t / prep.tiles_x);
+                let (tx, ty) = (t % prep.bins.tiles_x, t / prep.bins.tiles_x);
                 let mut samples = Vec::new();
                 let mut cols = Vec::new();
                 let mut px = vec![0.0; c + 1];
@@ -499,10 +428,7 @@ impl<T: Real> Op<T> for SoftRasOp {
                             continue;
                         }
                         let (m, zsum, lsum) = self.aggregate(&samples, &cols, c, &mut px);
-                        let p = [
-                            2.0 * (col as f64 + 0.5) / w as f64 - 1.0,
-                            1.0 - 2.0 * (row as f64 + 0.5) / h as f64,
-                        ];
+                        let p = pixel_centre(row, col, w, h);
                         for (q, colv) in samples.iter().zip(cols.chunks_exact(c.max(1))) {
                             let ef = ((q.zn - m) / s.gamma).exp();
                             let mut cdiff = 0.0;
@@ -525,7 +451,7 @@ impl<T: Real> Op<T> for SoftRasOp {
         let mut gclip = vec![0.0; nv * 4];
         let mut gattr = vec![0.0; nv * c];
         for (t, acc) in accs.iter().enumerate() {
-            for (li, &fi) in prep.tiles[t].iter().enumerate() {
+            for (li, &fi) in prep.bins.tiles[t].iter().enumerate() {
                 let f = self.faces[fi as usize];
                 let a = &acc[li * stride..(li + 1) * stride];
                 for k in 0..3 {
@@ -579,13 +505,7 @@ impl SoftRasOp {
         let gx = g_d * q.dd * sigmoid(-q.x);
         let sign = if q.x >= 0.0 { 1.0 } else { -1.0 };
         let gd2 = gx * sign / s.sigma;
-        if gd2 != 0.0 {
-            let (i, j) = (q.edge as usize, (q.edge as usize + 1) % 3);
-            for ax in 0..2 {
-                gv[i][ax] += gd2 * (-2.0 * q.r[ax] * (1.0 - q.t));
-                gv[j][ax] += gd2 * (-2.0 * q.r[ax] * q.t);
-            }
-        }
+        closest_backward(&q.closest, gd2, &mut gv);
         // Depth and attributes.
         let mut gz = -g_zn / (s.far - s.near);
         let stride = 4 + c;
@@ -652,11 +572,11 @@ impl SoftRasOp {
         }
         // NDC and view depth to clip coordinates.
         for k in 0..3 {
-            let wk = d[k];
+            let g = ndc_to_clip(gv[k], v[k], d[k]);
             let o = k * stride;
-            acc[o] += gv[k][0] / wk;
-            acc[o + 1] += gv[k][1] / wk;
-            acc[o + 3] += -(gv[k][0] * v[k][0] + gv[k][1] * v[k][1]) / wk + gdep[k];
+            acc[o] += g[0];
+            acc[o + 1] += g[1];
+            acc[o + 3] += g[2] + gdep[k];
         }
     }
 }

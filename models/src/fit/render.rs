@@ -1,0 +1,290 @@
+//! The face renderer used by the fitting: model coefficients and pose to landmarks and images
+//! on the tape.
+//!
+//! Camera: at the origin, looking down `-z` (the view matrix is the identity), OpenGL
+//! perspective with focal length `focal = cot(fov_y / 2)`, `aspect = width / height`. The face
+//! (model coordinates in millimetres, facing `+z`) is placed by `world = R(rotation) p +
+//! translation`, so a face in front of the camera has `translation.z < 0`.
+//!
+//! Shading: per-vertex albedo ([`Morphable::albedo_standardized`], with the constant region
+//! colours of the mouth interior and eye openings from [`Morphable::region_split`]) lit by
+//! order-2 SH ([`render_ops::shade::sh::sh_shade`], CONVENTIONS) with area-weighted vertex
+//! normals of the posed mesh (world = view space). The `hard` method interpolates normals and
+//! albedo per fragment and shades per fragment (rasterize, interpolate, shade, blend_hard);
+//! `softras` and `dibr` shade per vertex and let the raster op interpolate (and, for SoftRas,
+//! aggregate) the colours (Gouraud shading, as in SoftRas's own face-fitting examples). The
+//! photometric loss weights pixels by the render's alpha held constant, so DIB-R's silhouette
+//! gradient (which flows through alpha only) is not used: the outline is driven by the
+//! landmarks, and DIB-R's colours carry its interior (hard) gradients.
+
+use std::sync::Arc;
+
+use autodiff::{Tape, Var};
+use ndarray::{Array2, Array3, ArrayD};
+use render_ops::blend::blend_hard;
+use render_ops::interpolate::interpolate;
+use render_ops::raster::RasterSettings;
+use render_ops::rasterize::rasterize;
+use render_ops::scene::Method;
+use render_ops::shade::normals::vertex_normals;
+use render_ops::shade::sh::sh_shade;
+use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
+use render_ops::transform::{axis_angle_to_matrix, perspective_clip, rigid_transform};
+
+use super::{FaceParams, FitError};
+use crate::morphable::{Morphable, RegionSplit};
+
+/// Near plane of the fitting camera, millimetres.
+pub const NEAR_MM: f64 = 50.0;
+/// Far plane of the fitting camera, millimetres.
+pub const FAR_MM: f64 = 2000.0;
+
+/// Methods the face renderer supports in this build.
+pub const SUPPORTED_METHODS: [Method; 3] = [Method::Hard, Method::SoftRas, Method::Dibr];
+
+/// Checks that `method` is supported by the face renderer.
+pub fn check_method(method: Method) -> Result<(), FitError> {
+    if SUPPORTED_METHODS.contains(&method) {
+        Ok(())
+    } else {
+        Err(FitError::UnsupportedMethod {
+            method: method.name(),
+            supported: SUPPORTED_METHODS
+                .iter()
+                .map(|m| m.name())
+                .collect::<Vec<_>>()
+                .join(", "),
+        })
+    }
+}
+
+/// Parameter variables of one evaluation (see [`FaceParams`] for the meaning).
+#[derive(Clone, Copy, Debug)]
+pub struct ParamVars<'t> {
+    /// Axis-angle rotation `[3]`.
+    pub rotation: Var<'t, f64>,
+    /// Translation `[3]`, millimetres.
+    pub translation: Var<'t, f64>,
+    /// Focal length `[1]` (`cot(fov_y / 2)`).
+    pub focal: Var<'t, f64>,
+    /// Standardised identity coefficients `[K_id]`.
+    pub z_id: Var<'t, f64>,
+    /// Standardised expression coefficients `[K_exp]`.
+    pub z_exp: Var<'t, f64>,
+    /// Standardised albedo coefficients `[K_alb]`.
+    pub z_albedo: Var<'t, f64>,
+    /// SH coefficients `[9, 3]`.
+    pub sh: Var<'t, f64>,
+}
+
+/// Settings of the face renderer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderOptions {
+    /// Image width in pixels.
+    pub width: usize,
+    /// Image height in pixels.
+    pub height: usize,
+    /// Raster method.
+    pub method: Method,
+    /// Background colour.
+    pub background: [f64; 3],
+    /// SoftRas `sigma` (squared NDC units).
+    pub sigma: f64,
+    /// SoftRas `gamma` (`z01` units).
+    pub gamma: f64,
+    /// DIB-R `delta` (squared NDC units).
+    pub delta: f64,
+}
+
+impl RenderOptions {
+    /// Defaults for a `width x height` image: `hard`, black background, SoftRas defaults.
+    pub fn new(width: usize, height: usize) -> Self {
+        RenderOptions {
+            width,
+            height,
+            method: Method::Hard,
+            background: [0.0; 3],
+            sigma: 1e-4,
+            gamma: 1e-4,
+            delta: render_ops::scene::DEFAULT_DIBR_DELTA,
+        }
+    }
+}
+
+/// Renders a [`Morphable`] face: holds the render topology and the settings.
+pub struct FaceRenderer<'m> {
+    model: &'m Morphable<f64>,
+    split: RegionSplit<f64>,
+    model_faces: Arc<Vec<[u32; 3]>>,
+    render_faces: Arc<Vec<[u32; 3]>>,
+    /// The settings.
+    pub options: RenderOptions,
+}
+
+impl<'m> FaceRenderer<'m> {
+    /// A renderer of `model` with `options`; errors for unsupported methods or empty images.
+    pub fn new(model: &'m Morphable<f64>, options: RenderOptions) -> Result<Self, FitError> {
+        check_method(options.method)?;
+        if options.width == 0 || options.height == 0 {
+            return Err(FitError::Invalid(format!(
+                "image size {}x{} is empty",
+                options.width, options.height
+            )));
+        }
+        let split = model.region_split();
+        let render_faces = Arc::new(split.faces.clone());
+        Ok(FaceRenderer {
+            model,
+            split,
+            model_faces: Arc::new(model.faces().to_vec()),
+            render_faces,
+            options,
+        })
+    }
+
+    /// The model.
+    pub fn model(&self) -> &'m Morphable<f64> {
+        self.model
+    }
+
+    /// Parameter variables on `tape` from plain parameters; `grad` says which of (pose,
+    /// focal, shape, appearance) require gradients.
+    pub fn vars<'t>(&self, tape: &'t Tape<f64>, p: &FaceParams, grad: Active) -> ParamVars<'t> {
+        let t = p.tensors();
+        ParamVars {
+            rotation: tape.var(t[0].clone(), grad.pose),
+            translation: tape.var(t[1].clone(), grad.pose),
+            focal: tape.var(t[2].clone(), grad.focal),
+            z_id: tape.var(t[3].clone(), grad.shape),
+            z_exp: tape.var(t[4].clone(), grad.shape),
+            z_albedo: tape.var(t[5].clone(), grad.appearance),
+            sh: tape.var(t[6].clone(), grad.appearance),
+        }
+    }
+
+    /// Model-space shape `[V, 3]` (millimetres).
+    pub fn shape<'t>(&self, v: &ParamVars<'t>) -> Var<'t, f64> {
+        self.model
+            .shape_standardized(v.rotation.tape(), v.z_id, v.z_exp)
+    }
+
+    /// Posed (world = view space) vertex positions `[V, 3]`.
+    pub fn posed<'t>(&self, v: &ParamVars<'t>) -> Var<'t, f64> {
+        let r = axis_angle_to_matrix(v.rotation);
+        rigid_transform(self.shape(v), r, v.translation)
+    }
+
+    fn clip<'t>(&self, world: Var<'t, f64>, focal: Var<'t, f64>) -> Result<Var<'t, f64>, FitError> {
+        let aspect = self.options.width as f64 / self.options.height as f64;
+        Ok(perspective_clip(world, focal, aspect, NEAR_MM, FAR_MM)?)
+    }
+
+    /// Pixel positions `[N, 2]` (x right, y down, origin at the image's top-left corner, pixel
+    /// centres at +0.5) of the posed vertices `vertices`.
+    pub fn project_px<'t>(
+        &self,
+        world: Var<'t, f64>,
+        focal: Var<'t, f64>,
+        vertices: &[usize],
+    ) -> Result<Var<'t, f64>, FitError> {
+        let c = self.clip(world.index_select(0, vertices), focal)?;
+        let w = c.slice(1, 3, 4);
+        let (wd, ht) = (self.options.width as f64, self.options.height as f64);
+        let x = (c.slice(1, 0, 1) / w + 1.0) * (0.5 * wd);
+        let y = (1.0 - c.slice(1, 1, 2) / w) * (0.5 * ht);
+        Ok(world.tape().concat(&[x, y], 1))
+    }
+
+    /// The rendered image `[H, W, 4]` (RGB over the background, alpha = coverage) of posed
+    /// vertices `world` with the appearance in `v`.
+    pub fn image<'t>(
+        &self,
+        world: Var<'t, f64>,
+        v: &ParamVars<'t>,
+    ) -> Result<Var<'t, f64>, FitError> {
+        let tape = world.tape();
+        let normals = self.split.gather(vertex_normals(world, &self.model_faces));
+        let albedo = self
+            .split
+            .albedo(self.model.albedo_standardized(tape, v.z_albedo));
+        let pos = self.split.gather(world);
+        let clip = self.clip(pos, v.focal)?;
+        let o = &self.options;
+        match o.method {
+            Method::Hard => {
+                let r = rasterize(
+                    clip,
+                    self.render_faces.clone(),
+                    &RasterSettings::new(o.width, o.height),
+                )?;
+                let n = interpolate(normals, &r)?;
+                let a = interpolate(albedo, &r)?;
+                let col = sh_shade(n, a, v.sh);
+                Ok(blend_hard(col, &r.fragments, &o.background)?)
+            }
+            Method::SoftRas => {
+                let col = sh_shade(normals, albedo, v.sh);
+                let mut s = SoftSettings::new(o.width, o.height, NEAR_MM, FAR_MM);
+                s.sigma = o.sigma;
+                s.gamma = o.gamma;
+                s.background = o.background.to_vec();
+                Ok(softras(clip, col, self.render_faces.clone(), &s)?)
+            }
+            Method::Dibr => {
+                let col = sh_shade(normals, albedo, v.sh);
+                let mut s = DibrSettings::new(o.width, o.height);
+                s.delta = o.delta;
+                s.background = o.background.to_vec();
+                Ok(dibr(clip, col, self.render_faces.clone(), &s)?)
+            }
+            m => {
+                check_method(m)?;
+                unreachable!("check_method accepts only the methods matched above")
+            }
+        }
+    }
+
+    /// Plain render of `p`: the image `[H, W, 4]` and all vertices' pixel positions `[V, 2]`.
+    pub fn render(&self, p: &FaceParams) -> Result<(Array3<f64>, Array2<f64>), FitError> {
+        let tape = Tape::new();
+        let v = self.vars(&tape, p, Active::NONE);
+        let world = self.posed(&v);
+        let img = self.image(world, &v)?.value()?;
+        let all: Vec<usize> = (0..self.model.n_vertices()).collect();
+        let px = self.project_px(world, v.focal, &all)?.value()?;
+        Ok((to3(&img), to2(&px)))
+    }
+}
+
+/// Which parameter groups require gradients.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Active {
+    /// Rotation and translation.
+    pub pose: bool,
+    /// Focal length.
+    pub focal: bool,
+    /// Identity and expression.
+    pub shape: bool,
+    /// Albedo and SH lighting.
+    pub appearance: bool,
+}
+
+impl Active {
+    /// Nothing requires gradients (plain evaluation).
+    pub const NONE: Active = Active {
+        pose: false,
+        focal: false,
+        shape: false,
+        appearance: false,
+    };
+}
+
+pub(crate) fn to3(a: &ArrayD<f64>) -> Array3<f64> {
+    a.clone()
+        .into_dimensionality()
+        .expect("renderer images are 3-D")
+}
+
+pub(crate) fn to2(a: &ArrayD<f64>) -> Array2<f64> {
+    a.clone().into_dimensionality().expect("2-D")
+}
