@@ -97,7 +97,7 @@ impl Progress {
             return;
         }
         let last = r.iter + 1 == self.landmark_iters || r.iter + 1 == self.total;
-        if r.iter % 10 != 0 && !last {
+        if !r.iter.is_multiple_of(10) && !last {
             return;
         }
         let (name, i, n) = if r.stage == 1 {
