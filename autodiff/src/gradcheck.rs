@@ -115,14 +115,22 @@ impl GradcheckReport {
 impl std::fmt::Display for GradcheckReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         for r in &self.inputs {
+            // worst_index is (flat output index, flat input index): show the input entry as a
+            // multi-index in the input's shape.
+            let at = match r.worst_index.as_slice() {
+                [k, j] if r.shape.iter().product::<usize>() > *j => {
+                    format!("output[{k}] / input{:?}", unravel(*j, &r.shape))
+                }
+                _ => "-".to_string(),
+            };
             writeln!(
                 f,
-                "input {} {:?}: max abs {:.3e}, max rel {:.3e} at {:?} (analytic {:.6e}, numeric {:.6e}) {}",
+                "input {} {:?}: max abs {:.3e}, max rel {:.3e} at {} (analytic {:.6e}, numeric {:.6e}) {}",
                 r.input,
                 r.shape,
                 r.max_abs_err,
                 r.max_rel_err,
-                r.worst_index,
+                at,
                 r.analytic,
                 r.numeric,
                 if r.passed { "ok" } else { "FAILED" }

@@ -38,7 +38,7 @@ use std::path::Path;
 use autodiff::{
     tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, Var,
 };
-use ndarray::{ArrayD, IxDyn};
+use ndarray::{ArrayD, CowArray, IxDyn};
 use rayon::prelude::*;
 
 use crate::io::{read_png, IoError};
@@ -402,7 +402,7 @@ struct View<'a, T> {
 }
 
 impl<T: Real> TextureOp<T> {
-    fn check(&self, inputs: &[Tensor<T>]) -> AdResult<()> {
+    fn check(&self, inputs: &[CowArray<'_, T, IxDyn>]) -> AdResult<()> {
         let tex = &inputs[0];
         let ts = tex.shape();
         if ts.len() != 3 || ts.iter().any(|&d| d == 0) {
@@ -508,11 +508,10 @@ impl<T: Real> TextureOp<T> {
     }
 }
 
-fn std_inputs<T: Real>(inputs: &[&Tensor<T>]) -> Vec<Tensor<T>> {
-    inputs
-        .iter()
-        .map(|t| t.as_standard_layout().into_owned())
-        .collect()
+/// The inputs in standard (row-major contiguous) layout, borrowed when they already are (the
+/// usual case: no copy of the texture per call).
+fn std_inputs<'a, T: Real>(inputs: &[&'a Tensor<T>]) -> Vec<CowArray<'a, T, IxDyn>> {
+    inputs.iter().map(|t| t.as_standard_layout()).collect()
 }
 
 impl<T: Real> Op<T> for TextureOp<T> {

@@ -242,6 +242,23 @@ where
 }
 
 /// The tensor `[n, 3]` (per row) or `[3]`-like (shared) gradient for an input of `shape`.
+/// The op inputs in standard (row-major contiguous) layout: borrowed when they already are
+/// (the usual case), copied only otherwise, so that a fused op does not copy its inputs per call.
+pub(crate) fn standard_inputs<'a, T: Real>(
+    inputs: &[&'a Tensor<T>],
+) -> Vec<std::borrow::Cow<'a, Tensor<T>>> {
+    inputs
+        .iter()
+        .map(|&t| {
+            if t.is_standard_layout() {
+                std::borrow::Cow::Borrowed(t)
+            } else {
+                std::borrow::Cow::Owned(t.as_standard_layout().into_owned())
+            }
+        })
+        .collect()
+}
+
 pub(crate) fn grad_tensor<T: Real>(shape: &[usize], data: Vec<T>) -> Tensor<T> {
     Tensor::from_shape_vec(ndarray::IxDyn(shape), data).expect("gradient has the input's size")
 }

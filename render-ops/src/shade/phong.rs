@@ -318,11 +318,8 @@ impl<T: Real> Op<T> for PhongOp<T> {
     }
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let std: Vec<Tensor<T>> = inputs
-            .iter()
-            .map(|t| t.as_standard_layout().into_owned())
-            .collect();
-        let refs: Vec<&Tensor<T>> = std.iter().collect();
+        let std = super::standard_inputs(inputs);
+        let refs: Vec<&Tensor<T>> = std.iter().map(|c| c.as_ref()).collect();
         let k = read_inputs(self.model, self.eps, &refs)?;
         let n = refs[0].shape()[0];
         let (out, _) = chunked::<T, _>(n, 3, 0, |start, o, _| {
@@ -336,12 +333,8 @@ impl<T: Real> Op<T> for PhongOp<T> {
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let std: Vec<Tensor<T>> = ctx
-            .inputs
-            .iter()
-            .map(|t| t.as_standard_layout().into_owned())
-            .collect();
-        let refs: Vec<&Tensor<T>> = std.iter().collect();
+        let std = super::standard_inputs(ctx.inputs);
+        let refs: Vec<&Tensor<T>> = std.iter().map(|c| c.as_ref()).collect();
         let k = read_inputs(self.model, self.eps, &refs)?;
         let n = refs[0].shape()[0];
         let lay = Layout::new(&k);

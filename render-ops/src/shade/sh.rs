@@ -68,7 +68,7 @@ struct ShOp<T: Real> {
 }
 
 fn read<'a, T: Real>(
-    inputs: &'a [Tensor<T>],
+    inputs: &'a [std::borrow::Cow<'a, Tensor<T>>],
 ) -> AdResult<(usize, Rows<'a, T>, Rows<'a, T>, &'a [T])> {
     const OP: &str = "sh_shade";
     if inputs[0].ndim() != 2 {
@@ -106,10 +106,7 @@ impl<T: Real> Op<T> for ShOp<T> {
         "sh_shade"
     }
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let std: Vec<Tensor<T>> = inputs
-            .iter()
-            .map(|t| t.as_standard_layout().into_owned())
-            .collect();
+        let std = super::standard_inputs(inputs);
         let (n, nrm, alb, sh) = read(&std)?;
         let (out, _) = chunked::<T, _>(n, 3, 0, |start, o, _| {
             for (r, row) in o.chunks_mut(3).enumerate() {
@@ -125,11 +122,7 @@ impl<T: Real> Op<T> for ShOp<T> {
         ])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let std: Vec<Tensor<T>> = ctx
-            .inputs
-            .iter()
-            .map(|t| t.as_standard_layout().into_owned())
-            .collect();
+        let std = super::standard_inputs(ctx.inputs);
         let (n, nrm, alb, sh) = read(&std)?;
         let g = ctx.grad_outputs[0].as_standard_layout();
         let g = Rows {
