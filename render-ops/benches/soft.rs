@@ -1,0 +1,133 @@
+//! Forward and forward + backward speed of the soft rasterizers (SoftRas and DIB-R) on the
+//! peers' spheres (`Mesh::icosphere(4)` = ico5k, `Mesh::icosphere(6)` = ico80k) under the
+//! peers' camera, f32, per-vertex colours, RGBA output; the backward is that of
+//! `sum((image - target)^2)` with respect to positions and colours. SoftRas for
+//! sigma in {1e-3, 1e-4, 1e-5} (gamma 1e-4, threshold 1e-4), DIB-R at its default delta.
+//! `scripts/bench-soft-peers.sh` runs this bench beside the PyTorch SoftRas stand-in.
+//!
+//! ```text
+//! cargo bench -p tapestry-render-ops --bench soft -- --warm-up-time 1 --measurement-time 3
+//! ```
+
+use std::sync::Arc;
+
+use autodiff::ndarray::{ArrayD, IxDyn};
+use autodiff::{Tape, Tensor};
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use render_ops::camera::Camera;
+use render_ops::mesh::Mesh;
+use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
+use render_ops::transform::to_clip;
+
+/// The peers' camera: view-projection matrix (row-major).
+fn peers_view_proj() -> [[f64; 4]; 4] {
+    let fov = 2.0 * (0.5f64 / 1.1).atan();
+    Camera::perspective_look_at(
+        [0.0, 0.0, -3.0],
+        [0.0; 3],
+        [0.0, -1.0, 0.0],
+        fov,
+        1.0,
+        1.0,
+        100.0,
+    )
+    .expect("valid camera")
+    .view_proj()
+}
+
+struct Scene {
+    faces: Arc<Vec<[u32; 3]>>,
+    pos: Tensor<f32>,
+    col: Tensor<f32>,
+}
+
+fn scene(subdiv: u32) -> Scene {
+    let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
+    let v = mesh.positions.len();
+    let pos = ArrayD::from_shape_vec(
+        IxDyn(&[v, 3]),
+        mesh.positions.iter().flatten().copied().collect(),
+    )
+    .unwrap();
+    let col = pos.mapv(|x| 0.5 + 0.5 * x);
+    Scene {
+        faces: Arc::new(mesh.faces.clone()),
+        pos,
+        col,
+    }
+}
+
+fn pool(threads: usize) -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("thread pool")
+}
+
+#[derive(Clone, Copy)]
+enum Method {
+    SoftRas(f64),
+    Dibr,
+}
+
+/// Renders (and optionally back-propagates) one frame; returns a value so the work is kept.
+fn run(sc: &Scene, size: usize, method: Method, grad: bool) -> usize {
+    let m = peers_view_proj();
+    let tape = Tape::<f32>::new();
+    let p = tape.var(sc.pos.clone(), grad);
+    let c = tape.var(sc.col.clone(), grad);
+    let clip = to_clip(p, &m);
+    let img = match method {
+        Method::SoftRas(sigma) => {
+            let mut s = SoftSettings::new(size, size, 1.0, 100.0);
+            s.sigma = sigma;
+            s.gamma = 1e-4;
+            softras(clip, c, sc.faces.clone(), &s).unwrap()
+        }
+        Method::Dibr => dibr(clip, c, sc.faces.clone(), &DibrSettings::new(size, size)).unwrap(),
+    };
+    if grad {
+        let target = tape.constant(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
+        let g = tape.backward((img - target).square().sum()).unwrap();
+        g.get(p).map(|t| t.len()).unwrap_or(0)
+    } else {
+        img.value().unwrap().len()
+    }
+}
+
+fn bench_soft(c: &mut Criterion) {
+    let mut g = c.benchmark_group("soft_f32");
+    g.sample_size(10);
+    let threads = 2;
+    let pool = pool(threads);
+    for subdiv in [4u32, 6] {
+        let sc = scene(subdiv);
+        for size in [256usize, 512] {
+            let mut methods = vec![
+                ("softras_sigma1e-3", Method::SoftRas(1e-3)),
+                ("softras_sigma1e-4", Method::SoftRas(1e-4)),
+                ("softras_sigma1e-5", Method::SoftRas(1e-5)),
+                ("dibr", Method::Dibr),
+            ];
+            if subdiv == 6 && size == 512 {
+                // sigma 1e-3 at 512 x 512: the cut-off radius is 25 px, i.e. ~2000 pixels per
+                // face; at 80k faces that is seconds per frame (see the note in the README).
+                methods.remove(0);
+            }
+            for (name, method) in methods {
+                let id = format!("{}k_faces/{size}px/{threads}thr", sc.faces.len() / 1000);
+                g.bench_function(BenchmarkId::new(format!("{name}/forward"), &id), |b| {
+                    b.iter(|| pool.install(|| run(&sc, size, method, false)))
+                });
+                g.bench_function(
+                    BenchmarkId::new(format!("{name}/forward_backward"), &id),
+                    |b| b.iter(|| pool.install(|| run(&sc, size, method, true))),
+                );
+            }
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench_soft);
+criterion_main!(benches);
