@@ -1,5 +1,6 @@
 #![allow(clippy::approx_constant)] // test coordinates chosen to avoid pixel-centre ties, not constants
-//! SoftRas: gradient checks, the hard limit, agreement with the SoftRas reference, timing.
+//! SoftRas: gradient checks, the hard limit, agreement with the SoftRas reference, determinism
+//! (speed: `render-ops/benches/soft.rs`).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -341,44 +342,4 @@ fn ico_inputs(mesh: &Mesh<f64>) -> (Tensor<f64>, Tensor<f64>) {
         ArrayD::from_shape_vec(IxDyn(&[v, 4]), clip).unwrap(),
         ArrayD::from_shape_vec(IxDyn(&[v, 3]), cols).unwrap(),
     )
-}
-
-/// `cargo test --release -p tapestry-render-ops --test soft timing -- --nocapture --ignored`
-#[test]
-#[ignore]
-fn timing_icosphere_256() {
-    let mesh: Mesh<f64> = Mesh::icosphere(4, 1.0);
-    let (clip, cols) = ico_inputs(&mesh);
-    let faces = Arc::new(mesh.faces.clone());
-    let s = SoftSettings::new(256, 256, 1.0, 100.0);
-    let reps = 10;
-    let t0 = std::time::Instant::now();
-    for _ in 0..reps {
-        let tape = Tape::new();
-        let img = softras(
-            tape.leaf(clip.clone()),
-            tape.leaf(cols.clone()),
-            faces.clone(),
-            &s,
-        )
-        .unwrap();
-        std::hint::black_box(img.value().unwrap());
-    }
-    let fwd = t0.elapsed().as_secs_f64() / reps as f64;
-    let t0 = std::time::Instant::now();
-    for _ in 0..reps {
-        let tape = Tape::new();
-        let (c, a) = (tape.leaf(clip.clone()), tape.leaf(cols.clone()));
-        let img = softras(c, a, faces.clone(), &s).unwrap();
-        let g = tape.backward(img.sum()).unwrap();
-        std::hint::black_box(g.wrt(c));
-    }
-    let fb = t0.elapsed().as_secs_f64() / reps as f64;
-    println!(
-        "softras icosphere(4) {} faces 256x256 sigma 1e-4, {} threads: forward {:.2} ms, forward+backward {:.2} ms",
-        mesh.faces.len(),
-        rayon::current_num_threads(),
-        fwd * 1e3,
-        fb * 1e3
-    );
 }
