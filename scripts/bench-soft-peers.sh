@@ -7,6 +7,8 @@
 #
 # PEERS_DIR defaults to ../shared/peers. The stand-in's 80k-face / 512 x 512 case (about 40 s
 # and 10 GB per frame) is left out; set FULL=1 to add ico80k at 256 x 256 for sigma 1e-4.
+# OUT (default target/bench-peers) receives the scenes, the stand-in's JSONL and criterion's
+# text output; criterion's estimates are read from $CARGO_TARGET_DIR/criterion (default target/).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 PEERS=${1:-$ROOT/../shared/peers}
@@ -27,10 +29,9 @@ FILTER='soft_f32/softras.*/5k_faces/256px'
 [ "${FULL:-0}" = 1 ] && FILTER='soft_f32/softras.*/(5k_faces|81k_faces)/256px'
 (cd "$ROOT" && cargo bench -p tapestry-render-ops --bench soft -- \
   --warm-up-time 1 --measurement-time 3 "$FILTER" >"$OUT/tapestry-soft.txt")
-python3 - "$OUT" <<'PY'
+python3 - "$OUT" "${CARGO_TARGET_DIR:-$ROOT/target}/criterion" <<'PY'
 import json, os, sys
-out = sys.argv[1]
-crit = os.path.join(out, "..", "criterion")
+out, crit = sys.argv[1], sys.argv[2]
 def med(fn, par):
     p = os.path.join(crit, "soft_f32", fn.replace("/", "_"), par.replace("/", "_"), "new", "estimates.json")
     try:

@@ -12,6 +12,17 @@
 //! the best uniform scale must be below 1.5 mm. Measured at 80 x 80, 600 iterations, hard
 //! method: seed 1 1.35 mm (mean shape 2.92, scale-aligned 1.34), seed 2 0.75 mm (4.08, 0.62);
 //! 1500 iterations only reach 1.22 / 0.83 mm, the plateau of what one view determines.
+//!
+//! Where the rest of the error lies (seed 1, measured by rotating the error into the true
+//! camera frame): 1.08 of the 1.35 mm is along the viewing axis (x 0.24, y 0.60), with a
+//! 1 degree pitch error, the rotation/depth (bas-relief) trade-off: 1 mm of depth moves a
+//! landmark by ~0.02 px here, below the 0.08 px landmark residual. The default priors
+//! (`w_id = w_exp = 1e-4` against `w_lmk = 100`) amount to ~0.9 px landmark noise, right for
+//! detected landmarks but a bias on these exact ones: with `1e-6` a landmark-only fit of seed
+//! 1 reaches 0.44 mm (scale-aligned) after 2000 iterations, but seed 2 then drifts in size
+//! (1.67 mm, 0.93 aligned), and `1e-5` / `3e-5` with the default schedule give no better
+//! scale-aligned errors over seeds 0, 1, 2, 4 (1.14-1.37 mm). So the defaults stay, and 1 mm
+//! is not a bound that one view at 80 px supports for every seed.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -97,6 +108,12 @@ fn synthetic_fit_converges_softras() {
     );
     assert!(o.landmark_px < 1.0, "landmark error {} px", o.landmark_px);
     assert!(o.shape_mm < 0.5 * o.mean_shape_mm);
+    // Blurred edges at 64 px pin the depth less than the hard fit: measured 1.71 mm aligned.
+    assert!(
+        o.shape_aligned_mm < 2.0,
+        "scale-aligned shape error {} mm",
+        o.shape_aligned_mm
+    );
     assert!(o.rmse < 0.06, "photometric RMSE {}", o.rmse);
 }
 
