@@ -241,3 +241,190 @@ fn render_phong_and_grad_wrt_texture_and_camera() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Runs `tapestry ARGS` and checks that it failed the way a user should see it: exit code 2,
+/// exactly one line on stderr starting with `tapestry: error:` and holding `expect`, and no
+/// panic. Returns that line.
+fn fails_with_one_line(args: &[&std::ffi::OsStr], expect: &str) -> String {
+    let out = tapestry().args(args).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "{args:?}: {err}");
+    assert!(
+        err.starts_with("tapestry: error:") && !err.contains("panicked"),
+        "{args:?}: {err}"
+    );
+    assert!(err.contains(expect), "{args:?}: {err:?} lacks {expect:?}");
+    err
+}
+
+#[test]
+fn bad_files_and_oversized_requests_give_one_line_errors() {
+    use std::ffi::OsStr;
+    let dir = std::env::temp_dir().join(format!("tapestry-cli-robust-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let tri = "v -1 -1 0\nv 1 -1 0\nv 0 1 0\nf 1 2 3\n";
+    std::fs::write(dir.join("tri.obj"), tri).unwrap();
+    std::fs::write(dir.join("bad_number.obj"), "v 0 0 zero\nf 1 2 3\n").unwrap();
+    std::fs::write(dir.join("bad_index.obj"), tri.replace("f 1 2 3", "f 1 2 7")).unwrap();
+    let scene = |name: &str, mesh: &str, image: &str, raster: &str| {
+        let p = dir.join(name);
+        std::fs::write(
+            &p,
+            format!(
+                r#"{{"mesh": "{mesh}",
+                "camera": {{"eye": [0, 0, 3], "at": [0, 0, 0], "fov_y_deg": 45}},
+                "image": {image}, "raster": {raster}}}"#
+            ),
+        )
+        .unwrap();
+        p
+    };
+    let small = r#"{"width": 8, "height": 8}"#;
+    let hard = r#"{"method": "hard"}"#;
+    let good = scene("good.json", "tri.obj", small, hard);
+    let png = dir.join("out.png");
+    let o = |p: &std::path::Path| p.as_os_str().to_owned();
+    let render = |s: &std::path::Path, expect: &str| {
+        fails_with_one_line(
+            &[OsStr::new("render"), &o(s), OsStr::new("--out"), &o(&png)],
+            expect,
+        )
+    };
+    // The good scene renders: the failures below are the inputs' fault.
+    let ok = tapestry()
+        .args([
+            OsStr::new("render"),
+            &o(&good),
+            OsStr::new("--out"),
+            &o(&png),
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+
+    render(
+        &scene("a.json", "bad_number.obj", small, hard),
+        "bad_number.obj:1: bad number 'zero'",
+    );
+    render(
+        &scene("b.json", "bad_index.obj", small, hard),
+        "index 7 is out of range",
+    );
+    render(&scene("c.json", "none.obj", small, hard), "none.obj");
+    render(
+        &scene("d.json", "tri.obj", r#"{"width": "8", "height": 8}"#, hard),
+        "image.width: invalid type",
+    );
+    render(
+        &scene(
+            "e.json",
+            "tri.obj",
+            small,
+            r#"{"method": "hard", "sigmaa": 1}"#,
+        ),
+        "sigmaa",
+    );
+    render(
+        &scene("f.json", "tri.obj", small, r#"{"method": "nmr"}"#),
+        "not available",
+    );
+    // Too large for memory: refused before allocating (a 4096^2 image at 16 faces per pixel is
+    // 268M fragment slots; 65536^2 pixels is past the packed layout's pixel limit).
+    render(
+        &scene(
+            "g.json",
+            "tri.obj",
+            r#"{"width": 4096, "height": 4096}"#,
+            r#"{"method": "hard", "faces_per_pixel": 16}"#,
+        ),
+        "over the limit of 67108864",
+    );
+    render(
+        &scene(
+            "h.json",
+            "tri.obj",
+            r#"{"width": 65536, "height": 65536}"#,
+            hard,
+        ),
+        "too large",
+    );
+    // SoftRas with a huge sigma reaches every pixel from every face: 5000 faces at 1024^2
+    // would need 20M per-tile face list entries.
+    std::fs::write(
+        dir.join("many.obj"),
+        format!("v -1 -1 0\nv 1 -1 0\nv 0 1 0\n{}", "f 1 2 3\n".repeat(5000)),
+    )
+    .unwrap();
+    render(
+        &scene(
+            "i.json",
+            "many.obj",
+            r#"{"width": 1024, "height": 1024}"#,
+            r#"{"method": "softras", "sigma": 10}"#,
+        ),
+        "per-tile face list entries",
+    );
+    // Output that cannot be written.
+    fails_with_one_line(
+        &[
+            OsStr::new("render"),
+            &o(&good),
+            OsStr::new("--out"),
+            OsStr::new("/nonexistent/dir/x.png"),
+        ],
+        "/nonexistent/dir/x.png",
+    );
+
+    // grad: corrupt PNG, 2-channel PNG, integer .npy and wrong-shape .npy targets.
+    let grad = |target: &std::path::Path, expect: &str| {
+        fails_with_one_line(
+            &[
+                OsStr::new("grad"),
+                &o(&good),
+                OsStr::new("--target"),
+                &o(target),
+                OsStr::new("--wrt"),
+                OsStr::new("positions"),
+                OsStr::new("--out"),
+                &o(&dir.join("g.npy")),
+            ],
+            expect,
+        )
+    };
+    let corrupt = dir.join("corrupt.png");
+    std::fs::write(&corrupt, b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR").unwrap();
+    grad(&corrupt, "cannot decode PNG");
+    let gray = dir.join("gray.png");
+    tapestry::render_ops::io::write_png(
+        &gray,
+        &tapestry::autodiff::ndarray::Array3::<f64>::zeros((8, 8, 1)),
+    )
+    .unwrap();
+    grad(&gray, "does not match the scene's image");
+    let ints = dir.join("ints.npy");
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    let mut header = "{'descr': '<i8', 'fortran_order': False, 'shape': (8, 8, 3), }".to_string();
+    // Pad so that magic, version, length and header fill a multiple of 64 bytes.
+    let pad = 63 - (10 + header.len()) % 64;
+    header.push_str(&" ".repeat(pad));
+    header.push('\n');
+    npy.extend((header.len() as u16).to_le_bytes());
+    npy.extend(header.as_bytes());
+    npy.extend(vec![0u8; 8 * 8 * 3 * 8]);
+    std::fs::write(&ints, npy).unwrap();
+    grad(&ints, "dtype");
+    let wrong = dir.join("wrong.npy");
+    tapestry::render_ops::io::write_npy(
+        &wrong,
+        &tapestry::autodiff::ndarray::Array3::<f64>::zeros((4, 8, 3)),
+    )
+    .unwrap();
+    grad(&wrong, "[4, 8, 3] does not match");
+    grad(&dir.join("missing.npy"), "missing.npy");
+    std::fs::remove_dir_all(&dir).ok();
+}

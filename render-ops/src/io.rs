@@ -132,15 +132,11 @@ pub fn read_png<T: Real>(path: impl AsRef<Path>) -> Result<Array3<T>, IoError> {
         // Not recognised from the magic bytes: let the PNG decoder report what is wrong.
         reader.set_format(ImageFormat::Png);
     }
-    let img = reader.decode().map_err(|source| match source {
-        image::ImageError::IoError(source) => IoError::Open {
-            path: path.to_path_buf(),
-            source,
-        },
-        source => IoError::Decode {
-            path: path.to_path_buf(),
-            source,
-        },
+    // The file is open and its header read: an I/O error while decoding (e.g. an unexpected
+    // end of file) means a truncated or corrupt image.
+    let img = reader.decode().map_err(|source| IoError::Decode {
+        path: path.to_path_buf(),
+        source,
     })?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let from8 = |data: &[u8], c: usize| {
@@ -228,11 +224,13 @@ pub fn quantize(x: f64) -> u8 {
     }
 }
 
+/// Errors of parsing `.npy` bytes already read into memory: an I/O error there is a truncated
+/// or malformed file, not an unreadable one.
 fn npy_err(path: &Path, e: ReadNpyError) -> IoError {
     match e {
-        ReadNpyError::Io(source) => IoError::Open {
+        ReadNpyError::Io(source) => IoError::Npy {
             path: path.to_path_buf(),
-            source,
+            message: format!("truncated or malformed file: {source}"),
         },
         ReadNpyError::WrongDescriptor(d) => IoError::Dtype {
             path: path.to_path_buf(),

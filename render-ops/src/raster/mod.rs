@@ -65,6 +65,14 @@ pub const MAX_PIXELS: usize = 1 << 31;
 /// Largest `faces_per_pixel` accepted.
 pub const MAX_FACES_PER_PIXEL: usize = 1024;
 
+/// Largest `width * height * faces_per_pixel` accepted: the worst-case number of fragments,
+/// checked before anything is allocated. A fragment takes 92 bytes in [`Fragments`] for `f64`
+/// (48 for `f32`) and about as much again in the tape ops downstream, so a request at the
+/// limit (2^26: 8192 x 8192 with one face per pixel, 2048 x 2048 with 16) may need some 12 GB
+/// when every slot is filled. The soft methods, which keep one image row of values per pixel,
+/// take the same limit on `width * height`.
+pub const MAX_FRAGMENT_SLOTS: usize = 1 << 26;
+
 /// Settings of the hard rasterizer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RasterSettings {
@@ -103,7 +111,8 @@ impl RasterSettings {
         }
     }
 
-    /// Checks the image size and `faces_per_pixel`.
+    /// Checks the image size, `faces_per_pixel` and the worst-case fragment count
+    /// ([`MAX_FRAGMENT_SLOTS`]).
     pub fn validate(&self) -> Result<(), RasterError> {
         let (width, height) = (self.width, self.height);
         if width == 0 || height == 0 {
@@ -123,6 +132,20 @@ impl RasterSettings {
             return Err(RasterError::BadFacesPerPixel {
                 k: self.faces_per_pixel,
                 max: MAX_FACES_PER_PIXEL,
+            });
+        }
+        let slots = width
+            .saturating_mul(height)
+            .saturating_mul(self.faces_per_pixel);
+        if slots > MAX_FRAGMENT_SLOTS {
+            return Err(RasterError::TooLarge {
+                request: format!(
+                    "a {width}x{height} image with faces_per_pixel {}",
+                    self.faces_per_pixel
+                ),
+                what: "fragment slots (width x height x faces_per_pixel)",
+                needed: slots,
+                limit: MAX_FRAGMENT_SLOTS,
             });
         }
         Ok(())
@@ -149,6 +172,19 @@ pub enum RasterError {
         height: usize,
         /// Limit on `width * height`.
         max_pixels: usize,
+    },
+    /// The request would need more memory than a documented limit ([`MAX_FRAGMENT_SLOTS`],
+    /// [`crate::soft::MAX_SOFT_BIN_ENTRIES`]); refused before anything is allocated.
+    #[error("{request} needs {needed} {what}, over the limit of {limit}: lower the image size, faces_per_pixel or the soft cut-off")]
+    TooLarge {
+        /// What was asked for, e.g. `a 2048x2048 image with faces_per_pixel 32`.
+        request: String,
+        /// The resource counted, e.g. `fragment slots (width x height x faces_per_pixel)`.
+        what: &'static str,
+        /// How many the request needs (saturated at `usize::MAX`).
+        needed: usize,
+        /// The limit.
+        limit: usize,
     },
     /// `faces_per_pixel` is zero or too large.
     #[error("faces_per_pixel must be between 1 and {max}, got {k}")]

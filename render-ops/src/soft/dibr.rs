@@ -39,8 +39,8 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    closest_backward, closest_on_boundary, cross, ndc_to_clip, pixel_centre, project, Closest,
-    TileBins, TILE,
+    check_memory, closest_backward, closest_on_boundary, cross, ndc_to_clip, pixel_centre, project,
+    Closest, TileBins, TILE,
 };
 use crate::blend::blend_hard;
 use crate::error::RenderError;
@@ -149,6 +149,15 @@ pub fn dibr_alpha<'t, T: Real>(
     settings: &DibrSettings,
 ) -> Result<Var<'t, T>, RenderError> {
     check_inputs("dibr_alpha", &clip.shape(), &faces, settings)?;
+    check_memory(
+        "dibr_alpha",
+        &clip,
+        &faces,
+        settings.width,
+        settings.height,
+        settings.cutoff_sq().sqrt(),
+        settings.cull_backfaces,
+    )?;
     let op = DibrAlphaOp {
         faces,
         s: settings.clone(),

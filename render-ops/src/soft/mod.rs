@@ -12,5 +12,6 @@ pub(crate) mod common;
 pub mod dibr;
 pub mod softras;
 
+pub use common::MAX_SOFT_BIN_ENTRIES;
 pub use dibr::{dibr, dibr_alpha, DibrSettings};
 pub use softras::{softras, SoftSettings};

@@ -20,8 +20,8 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    closest_backward, closest_on_boundary, cross, ndc_to_clip, pixel_centre, project, Closest,
-    TileBins, TILE,
+    check_memory, closest_backward, closest_on_boundary, cross, ndc_to_clip, pixel_centre, project,
+    Closest, TileBins, TILE,
 };
 use crate::error::RenderError;
 
@@ -149,6 +149,15 @@ pub fn softras<'t, T: Real>(
         )
         .into());
     }
+    check_memory(
+        "softras",
+        &clip,
+        &faces,
+        settings.width,
+        settings.height,
+        settings.cutoff_sq().sqrt(),
+        false,
+    )?;
     let op = SoftRasOp {
         faces,
         s: settings.clone(),
@@ -261,6 +270,11 @@ impl SoftRasOp {
                 n[k] = cross([a[0] - p[0], a[1] - p[1]], [b[0] - p[0], b[1] - p[1]]);
             }
             let area = n[0] + n[1] + n[2];
+            // A sliver whose area rounds to zero (or overflows) at this pixel has no
+            // barycentrics here: skipped, in the forward and the backward alike.
+            if area == 0.0 || !area.is_finite() {
+                continue;
+            }
             let w = n.map(|x| x / area);
             let inside = w.iter().all(|&x| x >= 0.0);
             let best = closest_on_boundary(&v, p);
@@ -275,6 +289,9 @@ impl SoftRasOp {
             }
             let wc = w.map(|x| x.clamp(0.0, 1.0));
             let sumwc = wc[0] + wc[1] + wc[2];
+            if !(sumwc > 0.0 && sumwc.is_finite()) {
+                continue;
+            }
             let wn = wc.map(|x| x / sumwc);
             let d = f.map(|i| prep.depth[i as usize]);
             let zinv = wn[0] / d[0] + wn[1] / d[1] + wn[2] / d[2];
