@@ -7,6 +7,7 @@
     clippy::neg_cmp_op_on_partial_ord,
     clippy::manual_contains
 )]
+pub mod approx;
 pub mod blend;
 pub mod camera;
 pub mod error;

@@ -7,6 +7,7 @@ use std::sync::Arc;
 use autodiff::{Real, Tape, Var};
 use ndarray::{ArrayD, IxDyn};
 
+use crate::approx::{opendr, tf_mesh, ApproxSettings};
 use crate::blend::blend_hard;
 use crate::error::RenderError;
 use crate::interpolate::interpolate;
@@ -104,11 +105,19 @@ impl<T: Real> Scene<T> {
 
     /// Renders the scene: an RGBA image [H, W, 4] (RGB composited over the background, alpha =
     /// coverage) as a tape variable.
+    ///
+    /// Methods `tf_mesh` and `opendr` render the hard image of per-vertex colours (lighting
+    /// evaluated at the vertices, see [`Scene::vertex_colors`]; unlit scenes give exactly the
+    /// image of method `hard`) with their approximate gradients ([`crate::approx`]).
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
         let method = self.desc.raster.method;
-        if !matches!(method, Method::Hard | Method::SoftRas | Method::Dibr) {
+        if !matches!(
+            method,
+            Method::Hard | Method::SoftRas | Method::Dibr | Method::TfMesh | Method::OpenDr
+        ) {
             return Err(RenderError::Unsupported(format!(
-                "raster.method '{}' is not available in this build; available: hard, softras, dibr",
+                "raster.method '{}' is not available in this build; available: hard, tf_mesh, \
+                 opendr, softras, dibr",
                 method.name()
             )));
         }
@@ -148,6 +157,24 @@ impl<T: Real> Scene<T> {
             s.cull_backfaces = r.cull_backfaces;
             let alpha = dibr::dibr_alpha(clip, faces, &s)?;
             return dibr::composite(self.render_hard(vars, clip, kd)?, alpha);
+        }
+        if matches!(method, Method::TfMesh | Method::OpenDr) {
+            // The hard forward over per-vertex (Gouraud-shaded) colours, with approximate
+            // boundary gradients (render_ops::approx). Textures are rejected by vertex_colors.
+            let r = &self.desc.raster;
+            let mut s = ApproxSettings::new(
+                self.desc.image.width as usize,
+                self.desc.image.height as usize,
+            );
+            s.perspective_correct = r.perspective_correct;
+            s.cull_backfaces = r.cull_backfaces;
+            s.background = self.desc.image.background.to_vec();
+            let colors = self.vertex_colors(vars, kd)?;
+            return if method == Method::TfMesh {
+                tf_mesh(clip, colors, faces, &s)
+            } else {
+                opendr(clip, colors, faces, &s)
+            };
         }
         self.render_hard(vars, clip, kd)
     }
@@ -199,9 +226,10 @@ impl<T: Real> Scene<T> {
     }
 
     /// Per-vertex colours `[V, 3]` for raster methods that take per-vertex attributes (the
-    /// soft methods): the albedo `kd` times the vertex colours, shaded per vertex with the
-    /// scene's material and lights (Gouraud shading: the lighting is evaluated at the
-    /// vertices, with area-weighted vertex normals, and interpolated by the raster method).
+    /// soft methods, `tf_mesh` and `opendr`): the albedo `kd` times the vertex colours, shaded
+    /// per vertex with the scene's material and lights (Gouraud shading: the lighting is
+    /// evaluated at the vertices, with area-weighted vertex normals, and interpolated by the
+    /// raster method).
     /// Textures need per-fragment uvs and are not supported here: an `Unsupported` error.
     pub fn vertex_colors<'t>(
         &self,

@@ -1,0 +1,327 @@
+//! Approximate-gradient rasterizers: the hard (z-buffer) image forward, with a hand-written
+//! backward that approximates the derivative of the image at occlusion boundaries.
+//!
+//! * [`tf_mesh`]: the TF Mesh Renderer (K. Genova, F. Cole, A. Maschinot, A. Sarna, D. Vlasic and
+//!   W. T. Freeman, "Unsupervised Training for 3D Morphable Model Regression", CVPR 2018;
+//!   section 4.4 of the survey of H. Kato et al., "Differentiable Rendering: A Survey", 2020):
+//!   gradients through barycentrics of each pixel's nearest triangle, extrapolated past its
+//!   edges, so the surface is treated as locally flat across occlusion boundaries; a one-pixel
+//!   band along the silhouette gets the coverage change of the extended triangle.
+//! * [`opendr`]: OpenDR (M. M. Loper and M. J. Black, "OpenDR: An Approximate Differentiable
+//!   Renderer", ECCV 2014; survey section 4.1): the derivative of the pixels with respect to the
+//!   screen-space vertex positions from the image-space gradient of the rendered image (central
+//!   differences `1/2 [-1, 0, 1]`), with interior, single-boundary and multi-boundary pixels.
+//!
+//! Both ops take clip positions `[V, 4]` and per-vertex attributes (colours) `[V, C]` and return
+//! an image `[H, W, C + 1]`: the perspective-correct interpolated attributes of each pixel's
+//! nearest fragment over the background, and the coverage (0 or 1) as the last channel. The
+//! forward is the hard render of [`crate::rasterize`] + [`crate::interpolate`] +
+//! [`crate::blend::blend_hard`], bit for bit. Attribute gradients are the exact ones of that
+//! render (`dI_p / dA_k = b_k` on covered pixels). Position gradients go to `x`, `y` and `w` of
+//! the clip coordinates (`z` only sets visibility and gets none).
+//!
+//! Only interpolated per-vertex attributes are supported: both methods model how the image
+//! moves with the geometry, which they can do for attributes that move with the surface, not
+//! for arbitrary per-fragment shaders or textures.
+//!
+//! All work is in `f64` whatever the scalar. Backward contributions are computed in parallel
+//! over image rows and reduced into the vertex gradients in pixel order, so results are
+//! bit-identical for any number of rayon threads.
+
+pub mod opendr;
+pub mod tf_mesh;
+
+pub use opendr::opendr;
+pub use tf_mesh::tf_mesh;
+
+use std::sync::Arc;
+
+use autodiff::{AutodiffError, BackwardCtx, Real, Tensor, Var};
+use ndarray::{ArrayD, IxDyn};
+use rayon::prelude::*;
+
+use crate::error::RenderError;
+use crate::raster::{Fragments, RasterSettings};
+use crate::rasterize::clip_rows;
+use crate::soft::common::ndc_to_clip;
+
+/// Settings of [`tf_mesh`] and [`opendr`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct ApproxSettings {
+    /// Image width in pixels.
+    pub width: usize,
+    /// Image height in pixels.
+    pub height: usize,
+    /// Background value per attribute channel (empty: zeros).
+    pub background: Vec<f64>,
+    /// Perspective-correct interpolation (default `true`).
+    pub perspective_correct: bool,
+    /// Drop clockwise (back) faces (default `false`).
+    pub cull_backfaces: bool,
+}
+
+impl ApproxSettings {
+    /// Defaults for a `width x height` image.
+    pub fn new(width: usize, height: usize) -> Self {
+        Self {
+            width,
+            height,
+            background: Vec::new(),
+            perspective_correct: true,
+            cull_backfaces: false,
+        }
+    }
+
+    /// The hard rasterizer's settings (one fragment per pixel).
+    pub fn raster(&self) -> RasterSettings {
+        let mut s = RasterSettings::new(self.width, self.height);
+        s.perspective_correct = self.perspective_correct;
+        s.cull_backfaces = self.cull_backfaces;
+        s
+    }
+}
+
+/// Checks shapes and settings; rasterizes. Returns the fragments and the background (`C`
+/// values).
+pub(crate) fn prepare<'t, T: Real>(
+    op: &'static str,
+    clip: Var<'t, T>,
+    attrs: Var<'t, T>,
+    faces: &[[u32; 3]],
+    s: &ApproxSettings,
+) -> Result<(Arc<Fragments<T>>, Vec<T>), RenderError> {
+    let (cs, as_) = (clip.shape(), attrs.shape());
+    if cs.len() != 2 || cs[1] != 4 {
+        return Err(AutodiffError::shape(op, &[&cs], "clip positions must be [V, 4]").into());
+    }
+    if as_.len() != 2 || as_[0] != cs[0] {
+        return Err(AutodiffError::shape(
+            op,
+            &[&cs, &as_],
+            "attributes must be [V, C] with V as the clip positions",
+        )
+        .into());
+    }
+    let c = as_[1];
+    if !s.background.is_empty() && s.background.len() != c {
+        return Err(AutodiffError::invalid(
+            op,
+            format!(
+                "background has {} values for {c} attribute channels",
+                s.background.len()
+            ),
+        )
+        .into());
+    }
+    if s.background.iter().any(|b| !b.is_finite()) {
+        return Err(AutodiffError::invalid(
+            op,
+            format!("background must be finite: {:?}", s.background),
+        )
+        .into());
+    }
+    let cv = clip.value()?;
+    let rows = clip_rows(&cv)?;
+    let frags = crate::raster::rasterize(&rows, faces, &s.raster())?;
+    let bg = (0..c)
+        .map(|ch| T::from_f64c(s.background.get(ch).copied().unwrap_or(0.0)))
+        .collect();
+    Ok((Arc::new(frags), bg))
+}
+
+/// The hard render `[H, W, C + 1]`: per covered pixel `b0 A[f0] + b1 A[f1] + b2 A[f2]` (the
+/// arithmetic of [`crate::interpolate`]) and alpha 1, the background and alpha 0 elsewhere.
+pub(crate) fn render_hard<T: Real>(
+    op: &'static str,
+    frags: &Fragments<T>,
+    faces: &[[u32; 3]],
+    bg: &[T],
+    attrs: &Tensor<T>,
+) -> autodiff::Result<Tensor<T>> {
+    let c = bg.len();
+    if attrs.ndim() != 2 || attrs.shape()[1] != c {
+        return Err(AutodiffError::shape(
+            op,
+            &[attrs.shape()],
+            format!("attributes must be [V, {c}]"),
+        ));
+    }
+    let a = attrs.as_standard_layout();
+    let a = a.as_slice().expect("standard");
+    let (h, w) = (frags.height, frags.width);
+    let mut img = vec![T::zero(); h * w * (c + 1)];
+    img.par_chunks_mut(w * (c + 1))
+        .enumerate()
+        .for_each(|(row, out)| {
+            for (x, px) in out.chunks_mut(c + 1).enumerate() {
+                let p = row * w + x;
+                let r = frags.pixel_range(p);
+                if r.is_empty() {
+                    px[..c].copy_from_slice(bg);
+                    continue;
+                }
+                let i = r.start;
+                let f = faces[frags.face[i] as usize];
+                let b = frags.bary[i];
+                for ch in 0..c {
+                    px[ch] = b[0] * a[f[0] as usize * c + ch]
+                        + b[1] * a[f[1] as usize * c + ch]
+                        + b[2] * a[f[2] as usize * c + ch];
+                }
+                px[c] = T::one();
+            }
+        });
+    Ok(ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c"))
+}
+
+/// Exact gradient of the hard render with respect to the attributes: `dL/dA[f_k] += b_k dL/dI_p`
+/// over covered pixels, in pixel order.
+pub(crate) fn attribute_grad<T: Real>(
+    frags: &Fragments<T>,
+    faces: &[[u32; 3]],
+    attrs_shape: &[usize],
+    g: &[T],
+) -> Tensor<T> {
+    let c = attrs_shape[1];
+    let mut ga = vec![T::zero(); attrs_shape[0] * c];
+    for p in 0..frags.num_pixels() {
+        let r = frags.pixel_range(p);
+        if r.is_empty() {
+            continue;
+        }
+        let i = r.start;
+        let f = faces[frags.face[i] as usize];
+        let b = frags.bary[i];
+        for k in 0..3 {
+            let base = f[k] as usize * c;
+            for ch in 0..c {
+                ga[base + ch] += b[k] * g[p * (c + 1) + ch];
+            }
+        }
+    }
+    ArrayD::from_shape_vec(IxDyn(attrs_shape), ga).expect("same shape")
+}
+
+/// Screen geometry of the vertices: pixel coordinates `(col, row)` (pixel centres are integers)
+/// and NDC, with clip `w`.
+pub(crate) struct Screen {
+    pub width: usize,
+    pub height: usize,
+    /// `(col, row)` of every vertex.
+    pub px: Vec<[f64; 2]>,
+    /// NDC `(x, y)` of every vertex.
+    pub ndc: Vec<[f64; 2]>,
+    /// Clip `w` of every vertex.
+    pub w: Vec<f64>,
+    /// Clip `(x, y, z, w)` of every vertex in `f64`.
+    pub clip: Vec<[f64; 4]>,
+}
+
+impl Screen {
+    pub fn new<T: Real>(clip: &Tensor<T>, width: usize, height: usize) -> Self {
+        let (wf, hf) = (width as f64, height as f64);
+        let mut s = Screen {
+            width,
+            height,
+            px: Vec::new(),
+            ndc: Vec::new(),
+            w: Vec::new(),
+            clip: Vec::new(),
+        };
+        for r in clip.outer_iter() {
+            let c = [r[0], r[1], r[2], r[3]].map(|x| x.to_f64c());
+            let ndc = [c[0] / c[3], c[1] / c[3]];
+            s.px.push([
+                (ndc[0] + 1.0) * wf / 2.0 - 0.5,
+                (1.0 - ndc[1]) * hf / 2.0 - 0.5,
+            ]);
+            s.ndc.push(ndc);
+            s.w.push(c[3]);
+            s.clip.push(c);
+        }
+        s
+    }
+
+    /// The pixel positions of a face's vertices, `None` when a vertex is at or behind the eye
+    /// plane (`w <= 0`), is not finite, or the projected triangle has no area.
+    pub fn triangle(&self, f: [u32; 3]) -> Option<([[f64; 2]; 3], f64)> {
+        if f.iter().any(|&i| !(self.w[i as usize] > 0.0)) {
+            return None;
+        }
+        let v = f.map(|i| self.px[i as usize]);
+        let area2 = cross2(sub(v[1], v[0]), sub(v[2], v[0]));
+        (area2 != 0.0 && area2.is_finite()).then_some((v, area2))
+    }
+
+    /// Chains a gradient with respect to vertex `v`'s pixel position `(col, row)` to its clip
+    /// coordinates `(x, y, z, w)`.
+    pub fn px_to_clip(&self, v: usize, g: [f64; 2]) -> [f64; 4] {
+        // col = (x_ndc + 1) W / 2 - 1/2, row = (1 - y_ndc) H / 2 - 1/2.
+        let gn = [
+            g[0] * self.width as f64 / 2.0,
+            -g[1] * self.height as f64 / 2.0,
+        ];
+        let c = ndc_to_clip(gn, self.ndc[v], self.w[v]);
+        [c[0], c[1], 0.0, c[2]]
+    }
+}
+
+#[inline]
+pub(crate) fn sub(a: [f64; 2], b: [f64; 2]) -> [f64; 2] {
+    [a[0] - b[0], a[1] - b[1]]
+}
+
+#[inline]
+pub(crate) fn cross2(a: [f64; 2], b: [f64; 2]) -> f64 {
+    a[0] * b[1] - a[1] * b[0]
+}
+
+/// Affine (screen-space) barycentrics of point `p` in triangle `v` with doubled signed area
+/// `area2`; components are negative outside the triangle (extrapolation).
+#[inline]
+pub(crate) fn screen_bary(v: &[[f64; 2]; 3], area2: f64, p: [f64; 2]) -> [f64; 3] {
+    let l = |k: usize| {
+        let (a, b) = (v[(k + 1) % 3], v[(k + 2) % 3]);
+        cross2(sub(b, a), sub(p, a)) / area2
+    };
+    [l(0), l(1), l(2)]
+}
+
+/// Per-row lists of `(vertex, d/d(col, row))` contributions, reduced in row order (the order
+/// of pixels) into per-vertex pixel-space gradients, then chained to clip coordinates.
+pub(crate) fn reduce_rows(screen: &Screen, rows: Vec<Vec<(u32, [f64; 2])>>) -> Vec<[f64; 4]> {
+    let nv = screen.px.len();
+    let mut acc = vec![[0.0f64; 2]; nv];
+    for row in rows {
+        for (v, g) in row {
+            let a = &mut acc[v as usize];
+            a[0] += g[0];
+            a[1] += g[1];
+        }
+    }
+    acc.iter()
+        .enumerate()
+        .map(|(v, &g)| {
+            if g == [0.0, 0.0] {
+                [0.0; 4]
+            } else {
+                screen.px_to_clip(v, g)
+            }
+        })
+        .collect()
+}
+
+/// Gradient of the loss with respect to the output, `[H * W * (C + 1)]`, in `f64`.
+pub(crate) fn grad_f64<T: Real>(ctx: &BackwardCtx<'_, T>) -> Vec<f64> {
+    ctx.grad_outputs[0].iter().map(|x| x.to_f64c()).collect()
+}
+
+/// A `[V, 4]` tensor from per-vertex clip gradients.
+pub(crate) fn clip_tensor<T: Real>(g: Vec<[f64; 4]>) -> Tensor<T> {
+    let v = g.len();
+    ArrayD::from_shape_vec(
+        IxDyn(&[v, 4]),
+        g.into_iter().flatten().map(T::from_f64c).collect(),
+    )
+    .expect("v x 4")
+}
