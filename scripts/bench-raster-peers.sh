@@ -22,7 +22,7 @@ for mesh in ico5k ico80k; do
   done
 done
 (cd "$ROOT" && cargo bench -p tapestry-render-ops --bench raster -- \
-  --warm-up-time 1 --measurement-time 3 'raster_forward_f32|render_hard_f32' >"$OUT/tapestry.txt")
+  --warm-up-time 1 --measurement-time 3 'raster_forward_f32|render_hard_f32|deodr_f32' >"$OUT/tapestry.txt")
 python3 - "$OUT" <<'PY'
 import json, os, sys
 out = sys.argv[1]
@@ -38,6 +38,7 @@ def med(group, bid):
         return float("nan")
 print("| scene | DEODR fwd (1 thr) | DEODR fwd+bwd (1 thr) | Tapestry render fwd 1 / 2 thr | Tapestry fwd+bwd 1 / 2 thr | raster kernel (cull) 1 / 2 thr | speed-up fwd, 2 thr |")
 print("|---|---|---|---|---|---|---|")
+rows = []
 for line in open(os.path.join(out, "deodr.jsonl")):
     r = json.loads(line)
     k = {"ico5k": "5k", "ico80k": "81k"}[r["mesh"]]
@@ -48,4 +49,14 @@ for line in open(os.path.join(out, "deodr.jsonl")):
     k1, k2 = med("raster_forward_f32", f"{bid}/1thr/cull"), med("raster_forward_f32", f"{bid}/2thr/cull")
     d, db = r["forward"]["median_ms"], r["fwd_bwd"]["median_ms"]
     print(f"| {r['mesh']} {res}x{res} | {d:.2f} ms | {db:.2f} ms | {f1:.2f} / {f2:.2f} ms | {b1:.2f} / {b2:.2f} ms | {k1:.2f} / {k2:.2f} ms | {d / f2:.1f}x |")
+    rows.append((r, bid, d, db))
+print()
+print("Tapestry `deodr` (DEODR's settings: culling, screen-space colours, 1 px ramp) against DEODR:")
+print()
+print("| scene | DEODR fwd / fwd+bwd (1 thr) | deodr fwd 1 / 2 thr | deodr fwd+bwd 1 / 2 thr | speed-up fwd+bwd 1 / 2 thr |")
+print("|---|---|---|---|---|")
+for r, bid, d, db in rows:
+    f1, f2 = med("deodr_f32", f"forward|{bid}/1thr"), med("deodr_f32", f"forward|{bid}/2thr")
+    b1, b2 = med("deodr_f32", f"forward_backward|{bid}/1thr"), med("deodr_f32", f"forward_backward|{bid}/2thr")
+    print(f"| {r['mesh']} {r['res']}x{r['res']} | {d:.2f} / {db:.2f} ms | {f1:.2f} / {f2:.2f} ms | {b1:.2f} / {b2:.2f} ms | {db / b1:.2f}x / {db / b2:.2f}x |")
 PY

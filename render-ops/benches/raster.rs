@@ -165,5 +165,60 @@ fn bench_pipeline(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_forward, bench_backward, bench_pipeline);
+/// The `deodr` method with DEODR's settings (back-face culling, screen-space colours, a 1 px
+/// ramp) on the same scenes, loss `sum (I - 0.25)^2` over RGBA, gradients to positions and
+/// colours: the Tapestry side of `scripts/bench-raster-peers.sh`'s DEODR comparison.
+fn bench_deodr(c: &mut Criterion) {
+    let mut g = c.benchmark_group("deodr_f32");
+    g.sample_size(20);
+    let m = peers_view_proj();
+    for (subdiv, size) in [(4u32, 256usize), (4, 512), (6, 256), (6, 512)] {
+        let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
+        let v = mesh.positions.len();
+        let pos = ArrayD::from_shape_vec(
+            IxDyn(&[v, 3]),
+            mesh.positions.iter().flatten().copied().collect(),
+        )
+        .unwrap();
+        let col = pos.mapv(|x| 0.5 + 0.5 * x);
+        let target = ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32);
+        let faces = Arc::new(mesh.faces.clone());
+        let mut s = render_ops::approx::ApproxSettings::new(size, size);
+        s.cull_backfaces = true;
+        s.perspective_correct = false;
+        s.background = vec![0.0; 3];
+        for threads in [1, 2] {
+            let pool = pool(threads);
+            let id = format!("{}k_faces/{size}px/{threads}thr", mesh.faces.len() / 1000);
+            let run = |grad: bool| {
+                let tape = Tape::<f32>::new();
+                let p = tape.var(pos.clone(), grad);
+                let cv = tape.var(col.clone(), grad);
+                let img = render_ops::approx::deodr(to_clip(p, &m), cv, faces.clone(), &s)?;
+                if grad {
+                    let loss = (img - tape.constant(target.clone())).square().sum();
+                    let gr = tape.backward(loss)?;
+                    Ok::<_, render_ops::error::RenderError>(gr.get(p).map(|t| t.len()))
+                } else {
+                    Ok(Some(img.value()?.len()))
+                }
+            };
+            g.bench_function(BenchmarkId::new("forward", &id), |b| {
+                b.iter(|| pool.install(|| run(false).unwrap()))
+            });
+            g.bench_function(BenchmarkId::new("forward_backward", &id), |b| {
+                b.iter(|| pool.install(|| run(true).unwrap()))
+            });
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(
+    benches,
+    bench_forward,
+    bench_backward,
+    bench_pipeline,
+    bench_deodr
+);
 criterion_main!(benches);

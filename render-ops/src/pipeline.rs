@@ -7,7 +7,7 @@ use std::sync::Arc;
 use autodiff::{Real, Tape, Var};
 use ndarray::{ArrayD, IxDyn};
 
-use crate::approx::{opendr, tf_mesh, ApproxSettings};
+use crate::approx::{deodr, opendr, tf_mesh, ApproxSettings};
 use crate::blend::blend_hard;
 use crate::error::RenderError;
 use crate::interpolate::interpolate;
@@ -108,16 +108,23 @@ impl<T: Real> Scene<T> {
     ///
     /// Methods `tf_mesh` and `opendr` render the hard image of per-vertex colours (lighting
     /// evaluated at the vertices, see [`Scene::vertex_colors`]; unlit scenes give exactly the
-    /// image of method `hard`) with their approximate gradients ([`crate::approx`]).
+    /// image of method `hard`) with their approximate gradients; `deodr` overdraws that image's
+    /// silhouette edges with a ramp `overdraw_px` wide and differentiates it exactly
+    /// ([`crate::approx`]).
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
         let method = self.desc.raster.method;
         if !matches!(
             method,
-            Method::Hard | Method::SoftRas | Method::Dibr | Method::TfMesh | Method::OpenDr
+            Method::Hard
+                | Method::SoftRas
+                | Method::Dibr
+                | Method::TfMesh
+                | Method::OpenDr
+                | Method::Deodr
         ) {
             return Err(RenderError::Unsupported(format!(
                 "raster.method '{}' is not available in this build; available: hard, tf_mesh, \
-                 opendr, softras, dibr",
+                 opendr, deodr, softras, dibr",
                 method.name()
             )));
         }
@@ -158,9 +165,10 @@ impl<T: Real> Scene<T> {
             let alpha = dibr::dibr_alpha(clip, faces, &s)?;
             return dibr::composite(self.render_hard(vars, clip, kd)?, alpha);
         }
-        if matches!(method, Method::TfMesh | Method::OpenDr) {
+        if matches!(method, Method::TfMesh | Method::OpenDr | Method::Deodr) {
             // The hard forward over per-vertex (Gouraud-shaded) colours, with approximate
-            // boundary gradients (render_ops::approx). Textures are rejected by vertex_colors.
+            // boundary gradients, or DEODR's edge overdraw and its exact gradient
+            // (render_ops::approx). Textures are rejected by vertex_colors.
             let r = &self.desc.raster;
             let mut s = ApproxSettings::new(
                 self.desc.image.width as usize,
@@ -169,11 +177,12 @@ impl<T: Real> Scene<T> {
             s.perspective_correct = r.perspective_correct;
             s.cull_backfaces = r.cull_backfaces;
             s.background = self.desc.image.background.to_vec();
+            s.overdraw_px = r.overdraw_px;
             let colors = self.vertex_colors(vars, kd)?;
-            return if method == Method::TfMesh {
-                tf_mesh(clip, colors, faces, &s)
-            } else {
-                opendr(clip, colors, faces, &s)
+            return match method {
+                Method::TfMesh => tf_mesh(clip, colors, faces, &s),
+                Method::OpenDr => opendr(clip, colors, faces, &s),
+                _ => deodr(clip, colors, faces, &s),
             };
         }
         self.render_hard(vars, clip, kd)

@@ -1,5 +1,6 @@
-//! Approximate-gradient rasterizers: the hard (z-buffer) image forward, with a hand-written
-//! backward that approximates the derivative of the image at occlusion boundaries.
+//! Hard-rasterizer methods with boundary gradients: the hard (z-buffer) image forward, with a
+//! hand-written backward that approximates the derivative of the image at occlusion boundaries
+//! (`tf_mesh`, `opendr`), or an antialiased forward with its exact derivative (`deodr`).
 //!
 //! * [`tf_mesh`]: the TF Mesh Renderer (K. Genova, F. Cole, A. Maschinot, A. Sarna, D. Vlasic and
 //!   W. T. Freeman, "Unsupervised Training for 3D Morphable Model Regression", CVPR 2018;
@@ -12,7 +13,12 @@
 //!   screen-space vertex positions from the image-space gradient of the rendered image (central
 //!   differences `1/2 [-1, 0, 1]`), with interior, single-boundary and multi-boundary pixels.
 //!
-//! Both ops take clip positions `[V, 4]` and per-vertex attributes (colours) `[V, C]` and return
+//! * [`deodr`]: DEODR (M. de La Gorce, D. J. Fleet and N. Paragios, TPAMI 2011; survey section
+//!   4.4): the hard image with silhouette edges overdrawn by a linear ramp (discontinuity edge
+//!   overdraw), a forward that is continuous in the vertex positions, and its exact derivative.
+//!   Unlike the other two, its forward differs from the hard render near silhouettes.
+//!
+//! The ops take clip positions `[V, 4]` and per-vertex attributes (colours) `[V, C]` and return
 //! an image `[H, W, C + 1]`: the perspective-correct interpolated attributes of each pixel's
 //! nearest fragment over the background, and the coverage (0 or 1) as the last channel. The
 //! forward is the hard render of [`crate::rasterize`] + [`crate::interpolate`] +
@@ -28,9 +34,11 @@
 //! over image rows and reduced into the vertex gradients in pixel order, so results are
 //! bit-identical for any number of rayon threads.
 
+pub mod deodr;
 pub mod opendr;
 pub mod tf_mesh;
 
+pub use deodr::deodr;
 pub use opendr::opendr;
 pub use tf_mesh::tf_mesh;
 
@@ -45,7 +53,7 @@ use crate::raster::{Fragments, RasterSettings};
 use crate::rasterize::clip_rows;
 use crate::soft::common::ndc_to_clip;
 
-/// Settings of [`tf_mesh`] and [`opendr`].
+/// Settings of [`tf_mesh`], [`opendr`] and [`deodr`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct ApproxSettings {
     /// Image width in pixels.
@@ -58,6 +66,8 @@ pub struct ApproxSettings {
     pub perspective_correct: bool,
     /// Drop clockwise (back) faces (default `false`).
     pub cull_backfaces: bool,
+    /// Width in pixels of [`deodr`]'s overdraw ramp (default 1.0; 0 disables the overdraw).
+    pub overdraw_px: f64,
 }
 
 impl ApproxSettings {
@@ -69,6 +79,7 @@ impl ApproxSettings {
             background: Vec::new(),
             perspective_correct: true,
             cull_backfaces: false,
+            overdraw_px: 1.0,
         }
     }
 
