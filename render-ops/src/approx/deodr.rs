@@ -60,10 +60,11 @@ use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor,
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
-use super::{attribute_grad, cross2, prepare, render_hard, sub, ApproxSettings, Screen};
+use super::{
+    attribute_grad, cross2, interior_grad, prepare, render_hard, sub, ApproxSettings, Screen,
+};
 use crate::error::RenderError;
-use crate::raster::{rasterize_backward, Fragments};
-use crate::rasterize::clip_rows;
+use crate::raster::Fragments;
 
 /// Renders per-vertex attributes `[V, C]` over the faces from clip positions `[V, 4]` with
 /// DEODR's discontinuity edge overdraw: an image `[H, W, C + 1]` (attributes over the
@@ -610,39 +611,16 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None, g_attr]);
         }
-        let err = |e: String| AutodiffError::Op {
-            op: "deodr",
-            detail: e,
-        };
-        // Interior: dL/db_k = sum_ch g_ch A[f_k, ch] per fragment, through the hard
-        // rasterizer's barycentric backward.
-        let gbary: Vec<[T; 3]> = (0..fr.len())
-            .into_par_iter()
-            .with_min_len(1024)
-            .map(|i| {
-                let p = fr.pixel_of(i);
-                let f = self.faces[fr.face[i] as usize];
-                let gp = &g_hard[p * (c + 1)..p * (c + 1) + c];
-                f.map(|vi| {
-                    T::from_f64c(
-                        (0..c)
-                            .map(|ch| gp[ch].to_f64c() * attrs[vi as usize * c + ch])
-                            .sum(),
-                    )
-                })
-            })
-            .collect();
-        let rows = clip_rows(ctx.inputs[0]).map_err(|e| err(e.to_string()))?;
-        let interior = rasterize_backward(
-            &rows,
+        let attr_t = ctx.inputs[1].as_standard_layout();
+        let interior = interior_grad(
+            "deodr",
+            ctx.inputs[0],
             &self.faces,
             fr,
-            &gbary,
-            None,
-            None,
-            &self.settings.raster(),
-        )
-        .map_err(|e| err(e.to_string()))?;
+            attr_t.as_slice().expect("standard"),
+            g_hard,
+            &self.settings,
+        )?;
         // Edges: pixel-space and w gradients per vertex, summed in row order.
         let nv = self.screen.px.len();
         let mut acc = vec![[0.0f64; 3]; nv];

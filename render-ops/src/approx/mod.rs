@@ -213,6 +213,36 @@ pub(crate) fn attribute_grad<T: Real>(
     ArrayD::from_shape_vec(IxDyn(attrs_shape), ga).expect("same shape")
 }
 
+/// The interior gradient of the hard render with respect to the clip positions:
+/// `dL/db_k = sum_ch g_ch A[f_k, ch]` per fragment (`g` is `dL/dI`, `[H * W * (C + 1)]`, `attrs`
+/// `[V * C]`), through the hard rasterizer's barycentric backward
+/// ([`crate::raster::rasterize_backward`]).
+pub(crate) fn interior_grad<T: Real>(
+    op: &'static str,
+    clip: &Tensor<T>,
+    faces: &[[u32; 3]],
+    frags: &Fragments<T>,
+    attrs: &[T],
+    g: &[T],
+    settings: &ApproxSettings,
+) -> autodiff::Result<Vec<[T; 4]>> {
+    let c = attrs.len() / clip.shape()[0].max(1);
+    let gbary: Vec<[T; 3]> = (0..frags.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            let p = frags.pixel_of(i);
+            let f = faces[frags.face[i] as usize];
+            let gp = &g[p * (c + 1)..p * (c + 1) + c];
+            f.map(|vi| (0..c).map(|ch| gp[ch] * attrs[vi as usize * c + ch]).sum())
+        })
+        .collect();
+    let err = |e: String| AutodiffError::Op { op, detail: e };
+    let rows = clip_rows(clip).map_err(|e| err(e.to_string()))?;
+    crate::raster::rasterize_backward(&rows, faces, frags, &gbary, None, None, &settings.raster())
+        .map_err(|e| err(e.to_string()))
+}
+
 /// Screen geometry of the vertices: pixel coordinates `(col, row)` (pixel centres are integers)
 /// and NDC, with clip `w`.
 pub(crate) struct Screen {

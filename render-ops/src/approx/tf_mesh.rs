@@ -57,16 +57,15 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
 use rayon::prelude::*;
 
 use super::{
-    attribute_grad, clip_tensor, grad_f64, prepare, reduce_rows, render_hard, sub, ApproxSettings,
-    Screen,
+    attribute_grad, clip_tensor, grad_f64, interior_grad, prepare, reduce_rows, render_hard, sub,
+    ApproxSettings, Screen,
 };
 use crate::error::RenderError;
-use crate::raster::{rasterize_backward, Fragments};
-use crate::rasterize::clip_rows;
+use crate::raster::Fragments;
 
 /// The 8 neighbours of a pixel, `(d_row, d_col)`, in the fixed order they are tried.
 const NEIGHBOURS: [(isize, isize); 8] = [
@@ -372,7 +371,6 @@ impl<T: Real> Op<T> for TfMeshOp<T> {
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let fr = &self.fragments;
-        let c = self.background.len();
         let g_out = ctx.grad_outputs[0].as_standard_layout();
         let g_t = g_out.as_slice().expect("standard");
         let attr_t = ctx.inputs[1].as_standard_layout();
@@ -382,33 +380,15 @@ impl<T: Real> Op<T> for TfMeshOp<T> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None, g_attr]);
         }
-        let err = |e: String| AutodiffError::Op {
-            op: "tf_mesh",
-            detail: e,
-        };
-        // Interior: dL/db_k = sum_ch g_ch A[f_k, ch] per fragment, through the hard
-        // rasterizer's barycentric backward.
-        let gbary: Vec<[T; 3]> = (0..fr.len())
-            .into_par_iter()
-            .with_min_len(1024)
-            .map(|i| {
-                let p = fr.pixel_of(i);
-                let f = self.faces[fr.face[i] as usize];
-                let gp = &g_t[p * (c + 1)..p * (c + 1) + c];
-                f.map(|vi| (0..c).map(|ch| gp[ch] * attr_t[vi as usize * c + ch]).sum())
-            })
-            .collect();
-        let rows = clip_rows(ctx.inputs[0]).map_err(|e| err(e.to_string()))?;
-        let interior = rasterize_backward(
-            &rows,
+        let interior = interior_grad(
+            "tf_mesh",
+            ctx.inputs[0],
             &self.faces,
             fr,
-            &gbary,
-            None,
-            None,
-            &self.settings.raster(),
-        )
-        .map_err(|e| err(e.to_string()))?;
+            attr_t,
+            g_t,
+            &self.settings,
+        )?;
         // Band of background pixels along the silhouette.
         let screen = Screen::new(ctx.inputs[0], fr.width, fr.height);
         let g = grad_f64(ctx);
