@@ -181,9 +181,52 @@ pub fn composite<'t, T: Real>(
         )
         .into());
     }
-    let rgb = hard.slice(2, 0, hs[2] - 1);
-    let a = alpha.reshape(&[as_[0], as_[1], 1]);
-    Ok(hard.tape().concat(&[rgb, a], 2))
+    Ok(hard.tape().apply(ReplaceAlpha, &[hard, alpha]))
+}
+
+/// `[H, W, C + 1]` and `[H, W]` to `[H, W, C + 1]`: the first `C` channels of the first input
+/// and the second as the last channel, in one pass (a slice and a concat would copy the image
+/// element by element through strided views twice, forward and backward).
+struct ReplaceAlpha;
+
+impl<T: Real> Op<T> for ReplaceAlpha {
+    fn name(&self) -> &'static str {
+        "dibr_composite"
+    }
+
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+        let mut out = inputs[0].as_standard_layout().into_owned();
+        let alpha = inputs[1].as_standard_layout();
+        let c1 = out.shape()[2];
+        for (px, a) in out
+            .as_slice_mut()
+            .expect("standard")
+            .chunks_mut(c1)
+            .zip(alpha.iter())
+        {
+            px[c1 - 1] = *a;
+        }
+        Ok(vec![out])
+    }
+
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        let g = ctx.grad_outputs[0].as_standard_layout();
+        let c1 = g.shape()[2];
+        let gs = g.as_slice().expect("standard");
+        let g_alpha = ctx.needs_grad[1].then(|| {
+            let (h, w) = (g.shape()[0], g.shape()[1]);
+            ArrayD::from_shape_vec(IxDyn(&[h, w]), gs.chunks(c1).map(|px| px[c1 - 1]).collect())
+                .expect("h x w")
+        });
+        let g_hard = ctx.needs_grad[0].then(|| {
+            let mut gh = g.to_owned();
+            for px in gh.as_slice_mut().expect("standard").chunks_mut(c1) {
+                px[c1 - 1] = T::zero();
+            }
+            gh
+        });
+        Ok(vec![g_hard, g_alpha])
+    }
 }
 
 /// DIB-R: renders vertex attributes `[V, C]` over the faces from clip positions `[V, 4]`: an
