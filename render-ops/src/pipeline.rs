@@ -128,6 +128,14 @@ impl<T: Real> Scene<T> {
                 method.name()
             )));
         }
+        // NaN or Inf in an input would otherwise reach the image silently (colours), be
+        // skipped (soft methods) or be reported as a clip coordinate: name the input.
+        RenderError::check_finite("positions", &*vars.positions.value()?)?;
+        RenderError::check_finite("colors", &*vars.colors.value()?)?;
+        RenderError::check_finite("camera", &*vars.camera.value()?)?;
+        if let Some(t) = vars.texture {
+            RenderError::check_finite("texture", &*t.value()?)?;
+        }
         let faces = Arc::new(self.mesh.faces.clone());
         let clip = self.clip(vars.positions, vars);
         let kd = self.desc.material.kd.map(T::from_f64c);

@@ -150,7 +150,9 @@ fn face_rect(
     Some([c0 as i64, c1 as i64, r0 as i64, r1 as i64])
 }
 
-/// Refuses, before anything is allocated, a soft render whose image exceeds
+/// Refuses a vertex with a NaN or infinite clip coordinate
+/// ([`RasterError::NonFiniteVertex`]) and, before anything is allocated, a soft render whose
+/// image exceeds
 /// [`MAX_FRAGMENT_SLOTS`] pixels or whose per-tile face lists would exceed
 /// [`MAX_SOFT_BIN_ENTRIES`] entries (counted from the faces' expanded boxes, as
 /// [`TileBins::new`] will bin them). Poisoned or non-2-D `clip` values are left to the op.
@@ -177,6 +179,15 @@ pub(crate) fn check_memory<T: Real>(
     };
     if clip.ndim() != 2 || clip.shape()[1] != 4 {
         return Ok(());
+    }
+    // NaN or Inf coordinates are refused, as by the hard rasterizer.
+    for (v, row) in clip.outer_iter().enumerate() {
+        if !row.iter().all(|x| x.is_finite()) {
+            return Err(RasterError::NonFiniteVertex {
+                vertex: v,
+                coords: [row[0], row[1], row[2], row[3]].map(|x| x.to_f64c()),
+            });
+        }
     }
     let (ndc, depth) = project(&clip);
     if faces
