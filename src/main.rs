@@ -4,6 +4,10 @@ use std::process::ExitCode;
 
 use clap::Parser;
 
+/// Counts allocated bytes for the peak-memory column of `tapestry bench`.
+#[global_allocator]
+static ALLOC: tapestry::bench::alloc::CountingAlloc = tapestry::bench::alloc::CountingAlloc;
+
 fn main() -> ExitCode {
     let cli = tapestry::cli::Cli::parse();
     match tapestry::cli::run(cli) {

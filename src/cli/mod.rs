@@ -1,6 +1,7 @@
 //! The `tapestry` command line (see CONVENTIONS.md): argument parsing and the commands.
 //! Every command returns a typed error that `main` prints as one line on stderr.
 
+mod bench;
 mod fit_face;
 mod grad;
 mod gradcheck;
@@ -101,6 +102,23 @@ pub enum Command {
         #[arg(long, default_value_t = 256)]
         size: usize,
     },
+    /// Speed against error for every raster method (against a supersampled reference image
+    /// and its finite-difference pose gradient), and scaling in faces, pixels and threads:
+    /// a Markdown table, a JSON list of records, SVG charts.
+    Bench {
+        /// The quick configuration (under 2 minutes on 2 cores; 8x8 reference samples).
+        #[arg(long)]
+        quick: bool,
+        /// A configuration of a few seconds (tests).
+        #[arg(long, hide = true, conflicts_with = "quick")]
+        tiny: bool,
+        /// Write the records as a JSON list.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Write the charts (pareto.svg, faces.svg, pixels.svg, threads.svg) into this folder.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
 }
 
 /// Errors of the command line, each printed as one line.
@@ -118,9 +136,18 @@ pub enum CliError {
     /// Scene files.
     #[error(transparent)]
     Scene(#[from] render_ops::scene::SceneError),
+    /// The bench (boxed: its scene errors are large).
+    #[error(transparent)]
+    Bench(Box<crate::bench::BenchError>),
     /// Anything else, with its message.
     #[error("{0}")]
     Message(String),
+}
+
+impl From<crate::bench::BenchError> for CliError {
+    fn from(e: crate::bench::BenchError) -> Self {
+        CliError::Bench(Box::new(e))
+    }
 }
 
 /// Runs a parsed command line.
@@ -150,6 +177,17 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
             seed,
             method,
             size,
+        }),
+        Command::Bench {
+            quick,
+            tiny,
+            json,
+            out,
+        } => bench::run(&bench::Args {
+            quick,
+            tiny,
+            json,
+            out,
         }),
     }
 }
