@@ -14,6 +14,7 @@
 
 pub mod error;
 pub mod gradcheck;
+mod malloc;
 pub mod ops;
 pub mod optim;
 pub mod real;

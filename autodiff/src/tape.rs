@@ -129,8 +129,11 @@ impl<T: Real> Gradients<T> {
 }
 
 impl<T: Real> Tape<T> {
-    /// An empty tape.
+    /// An empty tape. The first tape of a process tunes glibc `malloc` so that the
+    /// activations freed by one step are reused by the next (see `malloc.rs`; opt out with
+    /// `TAPESTRY_MALLOC_TUNING=0`).
     pub fn new() -> Self {
+        crate::malloc::tune();
         Tape {
             inner: RefCell::new(Inner {
                 slots: Vec::new(),

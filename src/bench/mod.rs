@@ -243,29 +243,47 @@ impl MethodConfig {
 }
 
 /// Every method of [`Method::ALL`] with its parameter sweep: softras sigma in {1e-3, 1e-4,
-/// 1e-5} (gamma 1e-4), dibr delta in {3e-5, 1/7000, 3e-4} (Kaolin's recommended range), one
-/// face per pixel for hard, tf_mesh, opendr and nmr, deodr with a 1 px overdraw ramp.
+/// 1e-5} (gamma 1e-4), gamma in {1e-2, 1e-3} (sigma 1e-4) and the cut-off threshold 1e-2
+/// (default 1e-4); dibr delta in {3e-5, 1/7000, 3e-4} (Kaolin's recommended range); hard with
+/// K = 1 and 4 faces per pixel; tf_mesh, opendr and nmr with one; deodr with overdraw ramps of
+/// 0.5, 1 and 2 px.
 pub fn method_configs() -> Vec<MethodConfig> {
     let mut out = Vec::new();
     for m in Method::ALL {
         let mut r = Raster::with_method(m);
         match m {
             Method::Hard | Method::TfMesh | Method::OpenDr | Method::Nmr => {
-                r.faces_per_pixel = Some(1);
-                out.push(MethodConfig {
-                    raster: r,
-                    params: json!({"faces_per_pixel": 1}),
-                    default: true,
-                });
-            }
-            Method::SoftRas => {
-                for sigma in [1e-3, 1e-4, 1e-5] {
-                    r.sigma = sigma;
-                    r.gamma = 1e-4;
+                let ks: &[u32] = if m == Method::Hard { &[1, 4] } else { &[1] };
+                for &k in ks {
+                    r.faces_per_pixel = Some(k);
                     out.push(MethodConfig {
                         raster: r,
-                        params: json!({"sigma": sigma, "gamma": 1e-4}),
-                        default: sigma == 1e-4,
+                        params: json!({ "faces_per_pixel": k }),
+                        default: k == 1,
+                    });
+                }
+            }
+            Method::SoftRas => {
+                let sweep = [
+                    (1e-3, 1e-4, 1e-4),
+                    (1e-4, 1e-4, 1e-4),
+                    (1e-5, 1e-4, 1e-4),
+                    (1e-4, 1e-2, 1e-4),
+                    (1e-4, 1e-3, 1e-4),
+                    (1e-4, 1e-4, 1e-2),
+                ];
+                for (sigma, gamma, threshold) in sweep {
+                    r.sigma = sigma;
+                    r.gamma = gamma;
+                    r.threshold = threshold;
+                    let mut params = json!({"sigma": sigma, "gamma": gamma});
+                    if threshold != 1e-4 {
+                        params["threshold"] = json!(threshold);
+                    }
+                    out.push(MethodConfig {
+                        raster: r,
+                        params,
+                        default: (sigma, gamma, threshold) == (1e-4, 1e-4, 1e-4),
                     });
                 }
             }
@@ -280,12 +298,14 @@ pub fn method_configs() -> Vec<MethodConfig> {
                 }
             }
             Method::Deodr => {
-                r.overdraw_px = 1.0;
-                out.push(MethodConfig {
-                    raster: r,
-                    params: json!({"overdraw_px": 1.0}),
-                    default: true,
-                });
+                for px in [0.5, 1.0, 2.0] {
+                    r.overdraw_px = px;
+                    out.push(MethodConfig {
+                        raster: r,
+                        params: json!({ "overdraw_px": px }),
+                        default: px == 1.0,
+                    });
+                }
             }
         }
     }
