@@ -15,6 +15,7 @@
 pub mod error;
 pub mod gradcheck;
 mod malloc;
+pub use malloc::tune as tune_malloc;
 pub mod ops;
 pub mod optim;
 pub mod real;

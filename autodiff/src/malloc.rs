@@ -22,8 +22,9 @@ const TRIM_THRESHOLD: i32 = 1 << 30;
 
 static TUNE: Once = Once::new();
 
-/// Applies the tuning once per process (see the module documentation).
-pub(crate) fn tune() {
+/// Applies the tuning once per process (see the module documentation). [`crate::Tape::new`]
+/// calls it; entry points that allocate large buffers outside a tape (the rasterizer) do too.
+pub fn tune() {
     TUNE.call_once(|| {
         let chosen = |k: &str| std::env::var_os(k).is_some();
         if chosen("MALLOC_MMAP_THRESHOLD_")

@@ -56,6 +56,7 @@ pub fn rasterize<T: Real>(
     s: &RasterSettings,
 ) -> Result<Fragments<T>, RasterError> {
     validate_inputs(clip, faces, s)?;
+    autodiff::tune_malloc();
     let nv = clip.len();
     let mut verts = vec![[0.0f64; 4]; nv];
     let mut proj = vec![[0.0f64; 2]; nv];
