@@ -1,5 +1,5 @@
 //! The numerical stability suite: hard inputs through every raster method (`hard`, `tf_mesh`,
-//! `opendr`, `deodr`, `softras`, `dibr`), forward and backward. Each case must give finite
+//! `opendr`, `nmr`, `deodr`, `softras`, `dibr`), forward and backward. Each case must give finite
 //! images and finite gradients with respect to the clip positions and the colours, or a typed
 //! error that names the problem; never a panic, a NaN or silent garbage.
 //!
@@ -20,7 +20,7 @@ use std::sync::Arc;
 
 use autodiff::{Tape, Tensor};
 use ndarray::{ArrayD, IxDyn};
-use tapestry::render_ops::approx::{deodr, opendr, tf_mesh, ApproxSettings};
+use tapestry::render_ops::approx::{deodr, nmr, opendr, tf_mesh, ApproxSettings};
 use tapestry::render_ops::blend::blend_hard;
 use tapestry::render_ops::error::RenderError;
 use tapestry::render_ops::interpolate::interpolate;
@@ -33,12 +33,21 @@ enum M {
     Hard,
     TfMesh,
     OpenDr,
+    Nmr,
     Deodr,
     SoftRas,
     Dibr,
 }
 
-const ALL: [M; 6] = [M::Hard, M::TfMesh, M::OpenDr, M::Deodr, M::SoftRas, M::Dibr];
+const ALL: [M; 7] = [
+    M::Hard,
+    M::TfMesh,
+    M::OpenDr,
+    M::Nmr,
+    M::Deodr,
+    M::SoftRas,
+    M::Dibr,
+];
 
 /// Method parameters a case may change.
 #[derive(Clone, Debug)]
@@ -111,13 +120,14 @@ fn run(
             let r = rasterize(c, faces, &s)?;
             blend_hard(interpolate(a, &r)?, &r.fragments, &bg)?
         }
-        M::TfMesh | M::OpenDr | M::Deodr => {
+        M::TfMesh | M::OpenDr | M::Nmr | M::Deodr => {
             let mut s = ApproxSettings::new(o.w, o.h);
             s.cull_backfaces = o.cull;
             s.background = bg;
             match m {
                 M::TfMesh => tf_mesh(c, a, faces, &s)?,
                 M::OpenDr => opendr(c, a, faces, &s)?,
+                M::Nmr => nmr(c, a, faces, &s)?,
                 _ => deodr(c, a, faces, &s)?,
             }
         }
@@ -470,7 +480,7 @@ fn a_million_faces_over_one_pixel() {
         assert!(out.img.iter().chain(&out.g_clip).all(|x| x.is_finite()));
         assert_eq!(out.img[(4 * 8 + 4) * 4 + 3], 1.0);
     }
-    for m in [M::TfMesh, M::OpenDr, M::Deodr, M::SoftRas, M::Dibr] {
+    for m in [M::TfMesh, M::OpenDr, M::Nmr, M::Deodr, M::SoftRas, M::Dibr] {
         let out = run(m, &clip, &cols, &faces, &Opts::new(8, 8)).unwrap();
         for v in [&out.img, &out.g_clip, &out.g_col] {
             assert!(v.iter().all(|x| x.is_finite()), "{m:?}");

@@ -5,6 +5,8 @@
 //! the peers' camera (eye (0, 0, -3), up (0, -1, 0), fov_y 48.888 degrees, near 1, far 100),
 //! f32, K = 1, on rayon pools of 1 and 2 threads, without and with back-face culling (DEODR's
 //! setting). `scripts/bench-raster-peers.sh` runs this bench and DEODR's forward side by side.
+//! Groups `deodr_f32` and `nmr_f32` time those methods of `render_ops::approx`, forward and
+//! forward + backward, on the 5k and 80k spheres at 256 and 512 pixels.
 //!
 //! ```text
 //! cargo bench -p tapestry-render-ops --bench raster -- --warm-up-time 1 --measurement-time 3
@@ -165,11 +167,19 @@ fn bench_pipeline(c: &mut Criterion) {
     g.finish();
 }
 
-/// The `deodr` method with DEODR's settings (back-face culling, screen-space colours, a 1 px
-/// ramp) on the same scenes, loss `sum (I - 0.25)^2` over RGBA, gradients to positions and
-/// colours: the Tapestry side of `scripts/bench-raster-peers.sh`'s DEODR comparison.
-fn bench_deodr(c: &mut Criterion) {
-    let mut g = c.benchmark_group("deodr_f32");
+/// An approximate-gradient method of `render_ops::approx`.
+type ApproxFn = for<'t> fn(
+    autodiff::Var<'t, f32>,
+    autodiff::Var<'t, f32>,
+    Arc<Vec<[u32; 3]>>,
+    &render_ops::approx::ApproxSettings,
+) -> Result<autodiff::Var<'t, f32>, render_ops::error::RenderError>;
+
+/// Method `method` of `render_ops::approx` with DEODR's settings (back-face culling,
+/// screen-space colours, for `deodr` a 1 px ramp) on the same scenes, loss `sum (I - 0.25)^2`
+/// over RGBA, gradients to positions and colours, as criterion group `group`.
+fn bench_approx(c: &mut Criterion, group: &str, method: ApproxFn) {
+    let mut g = c.benchmark_group(group);
     g.sample_size(20);
     let m = peers_view_proj();
     for (subdiv, size) in [(4u32, 256usize), (4, 512), (6, 256), (6, 512)] {
@@ -194,7 +204,7 @@ fn bench_deodr(c: &mut Criterion) {
                 let tape = Tape::<f32>::new();
                 let p = tape.var(pos.clone(), grad);
                 let cv = tape.var(col.clone(), grad);
-                let img = render_ops::approx::deodr(to_clip(p, &m), cv, faces.clone(), &s)?;
+                let img = method(to_clip(p, &m), cv, faces.clone(), &s)?;
                 if grad {
                     let loss = (img - tape.constant(target.clone())).square().sum();
                     let gr = tape.backward(loss)?;
@@ -214,11 +224,22 @@ fn bench_deodr(c: &mut Criterion) {
     g.finish();
 }
 
+/// The `deodr` method: the Tapestry side of `scripts/bench-raster-peers.sh`'s DEODR comparison.
+fn bench_deodr(c: &mut Criterion) {
+    bench_approx(c, "deodr_f32", render_ops::approx::deodr::<f32>);
+}
+
+/// The `nmr` method (Kato et al. 2018), on DEODR's settings and scenes for comparison.
+fn bench_nmr(c: &mut Criterion) {
+    bench_approx(c, "nmr_f32", render_ops::approx::nmr::<f32>);
+}
+
 criterion_group!(
     benches,
     bench_forward,
     bench_backward,
     bench_pipeline,
-    bench_deodr
+    bench_deodr,
+    bench_nmr
 );
 criterion_main!(benches);

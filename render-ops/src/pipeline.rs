@@ -7,7 +7,7 @@ use std::sync::Arc;
 use autodiff::{Real, Tape, Var};
 use ndarray::{ArrayD, IxDyn};
 
-use crate::approx::{deodr, opendr, tf_mesh, ApproxSettings};
+use crate::approx::{deodr, nmr, opendr, tf_mesh, ApproxSettings};
 use crate::blend::blend_hard;
 use crate::error::RenderError;
 use crate::interpolate::interpolate;
@@ -106,28 +106,13 @@ impl<T: Real> Scene<T> {
     /// Renders the scene: an RGBA image [H, W, 4] (RGB composited over the background, alpha =
     /// coverage) as a tape variable.
     ///
-    /// Methods `tf_mesh` and `opendr` render the hard image of per-vertex colours (lighting
-    /// evaluated at the vertices, see [`Scene::vertex_colors`]; unlit scenes give exactly the
-    /// image of method `hard`) with their approximate gradients; `deodr` overdraws that image's
-    /// silhouette edges with a ramp `overdraw_px` wide and differentiates it exactly
-    /// ([`crate::approx`]).
+    /// Methods `tf_mesh`, `opendr` and `nmr` render the hard image of per-vertex colours
+    /// (lighting evaluated at the vertices, see [`Scene::vertex_colors`]; unlit scenes give
+    /// exactly the image of method `hard`) with their approximate gradients; `deodr` overdraws
+    /// that image's silhouette edges with a ramp `overdraw_px` wide and differentiates it
+    /// exactly ([`crate::approx`]). Every method of [`Method::ALL`] is available.
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
         let method = self.desc.raster.method;
-        if !matches!(
-            method,
-            Method::Hard
-                | Method::SoftRas
-                | Method::Dibr
-                | Method::TfMesh
-                | Method::OpenDr
-                | Method::Deodr
-        ) {
-            return Err(RenderError::Unsupported(format!(
-                "raster.method '{}' is not available in this build; available: hard, tf_mesh, \
-                 opendr, deodr, softras, dibr",
-                method.name()
-            )));
-        }
         // NaN or Inf in an input would otherwise reach the image silently (colours), be
         // skipped (soft methods) or be reported as a clip coordinate: name the input.
         RenderError::check_finite("positions", &*vars.positions.value()?)?;
@@ -173,7 +158,10 @@ impl<T: Real> Scene<T> {
             let alpha = dibr::dibr_alpha(clip, faces, &s)?;
             return dibr::composite(self.render_hard(vars, clip, kd)?, alpha);
         }
-        if matches!(method, Method::TfMesh | Method::OpenDr | Method::Deodr) {
+        if matches!(
+            method,
+            Method::TfMesh | Method::OpenDr | Method::Nmr | Method::Deodr
+        ) {
             // The hard forward over per-vertex (Gouraud-shaded) colours, with approximate
             // boundary gradients, or DEODR's edge overdraw and its exact gradient
             // (render_ops::approx). Textures are rejected by vertex_colors.
@@ -190,6 +178,7 @@ impl<T: Real> Scene<T> {
             return match method {
                 Method::TfMesh => tf_mesh(clip, colors, faces, &s),
                 Method::OpenDr => opendr(clip, colors, faces, &s),
+                Method::Nmr => nmr(clip, colors, faces, &s),
                 _ => deodr(clip, colors, faces, &s),
             };
         }
@@ -243,10 +232,10 @@ impl<T: Real> Scene<T> {
     }
 
     /// Per-vertex colours `[V, 3]` for raster methods that take per-vertex attributes (the
-    /// soft methods, `tf_mesh` and `opendr`): the albedo `kd` times the vertex colours, shaded
-    /// per vertex with the scene's material and lights (Gouraud shading: the lighting is
-    /// evaluated at the vertices, with area-weighted vertex normals, and interpolated by the
-    /// raster method).
+    /// soft methods and those of [`crate::approx`]: `tf_mesh`, `opendr`, `nmr`, `deodr`): the
+    /// albedo `kd` times the vertex colours, shaded per vertex with the scene's material and
+    /// lights (Gouraud shading: the lighting is evaluated at the vertices, with area-weighted
+    /// vertex normals, and interpolated by the raster method).
     /// Textures need per-fragment uvs and are not supported here: an `Unsupported` error.
     pub fn vertex_colors<'t>(
         &self,

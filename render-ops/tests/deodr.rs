@@ -16,6 +16,9 @@ use render_ops::mesh::Mesh;
 use render_ops::scene::Scene;
 use render_ops::transform::to_clip;
 
+mod common;
+use common::{clip_row, perspective_clip, smooth_colours, t2, weights};
+
 fn peers() -> Option<PathBuf> {
     let dir = match std::env::var_os("TAPESTRY_PEERS") {
         Some(d) => PathBuf::from(d),
@@ -30,20 +33,6 @@ fn peers() -> Option<PathBuf> {
         );
         None
     }
-}
-
-fn t2(rows: &[Vec<f64>]) -> Tensor<f64> {
-    let c = rows[0].len();
-    ArrayD::from_shape_vec(
-        IxDyn(&[rows.len(), c]),
-        rows.iter().flatten().copied().collect(),
-    )
-    .unwrap()
-}
-
-/// Clip row from NDC (x, y) and view depth w (OpenGL depth with near 1, far 10).
-fn clip_row(x: f64, y: f64, w: f64) -> Vec<f64> {
-    vec![x * w, y * w, (11.0 * w - 20.0) / 9.0, w]
 }
 
 /// A front triangle partly in front of a larger one (occlusion edges over a surface, boundary
@@ -72,29 +61,11 @@ fn scene() -> (Tensor<f64>, Tensor<f64>, Arc<Vec<[u32; 3]>>) {
 /// between front and back faces.
 fn ico(level: u32) -> (Tensor<f64>, Tensor<f64>, Arc<Vec<[u32; 3]>>) {
     let mesh: Mesh<f64> = Mesh::icosphere(level, 1.0);
-    let nv = mesh.positions.len();
-    let cam = render_ops::camera::Camera::perspective_look_at(
-        [0.13, 0.21, 3.1],
-        [0.02, -0.03, 0.0],
-        [0.0, 1.0, 0.0],
-        42f64.to_radians(),
-        1.0,
-        1.0,
-        50.0,
+    (
+        perspective_clip(&mesh.positions, [0.13, 0.21, 3.1]),
+        smooth_colours(&mesh.positions),
+        Arc::new(mesh.faces.clone()),
     )
-    .unwrap();
-    let m = cam.view_proj();
-    let clip = ArrayD::from_shape_fn(IxDyn(&[nv, 4]), |i| {
-        let p = mesh.positions[i[0]];
-        (0..4)
-            .map(|k| m[i[1]][k] * if k < 3 { p[k] } else { 1.0 })
-            .sum()
-    });
-    let cols = ArrayD::from_shape_fn(IxDyn(&[nv, 3]), |i| {
-        let p = mesh.positions[i[0]];
-        0.5 + 0.4 * (3.0 * p[i[1]] + i[1] as f64).sin()
-    });
-    (clip, cols, Arc::new(mesh.faces.clone()))
 }
 
 fn settings(w: usize, h: usize, persp: bool, cull: bool) -> ApproxSettings {
@@ -103,19 +74,6 @@ fn settings(w: usize, h: usize, persp: bool, cull: bool) -> ApproxSettings {
     s.cull_backfaces = cull;
     s.background = vec![0.2, 0.3, 0.1];
     s
-}
-
-/// Fixed pseudo-random weights, so that the loss `sum(weights * image)` sees every pixel.
-fn weights(n: usize) -> Vec<f64> {
-    let mut x = 0x9e37_79b9_7f4a_7c15u64;
-    (0..n)
-        .map(|_| {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            (x >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-        })
-        .collect()
 }
 
 fn render<T: Real>(

@@ -19,19 +19,8 @@ use render_ops::rasterize::rasterize;
 use render_ops::scene::Scene;
 use render_ops::soft::{dibr, dibr_alpha, DibrSettings};
 
-fn t2(rows: &[Vec<f64>]) -> Tensor<f64> {
-    let c = rows[0].len();
-    ArrayD::from_shape_vec(
-        IxDyn(&[rows.len(), c]),
-        rows.iter().flatten().copied().collect(),
-    )
-    .unwrap()
-}
-
-/// Clip row from NDC (x, y) and view depth w (OpenGL depth with near 1, far 10).
-fn clip_row(x: f64, y: f64, w: f64) -> Vec<f64> {
-    vec![x * w, y * w, (11.0 * w - 20.0) / 9.0, w]
-}
+mod common;
+use common::{clip_row, t2};
 
 /// Two overlapping triangles (depth order swapping across the image), a small third one
 /// (clockwise) and a sliver, at coordinates that avoid pixel-centre ties.

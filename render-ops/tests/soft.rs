@@ -18,6 +18,9 @@ use render_ops::scene::Scene;
 use render_ops::soft::{softras, SoftSettings};
 use render_ops::transform::to_clip;
 
+mod common;
+use common::{clip_row, t2};
+
 fn peers() -> Option<PathBuf> {
     let dir = match std::env::var_os("TAPESTRY_PEERS") {
         Some(d) => PathBuf::from(d),
@@ -32,20 +35,6 @@ fn peers() -> Option<PathBuf> {
         );
         None
     }
-}
-
-fn t2(rows: &[Vec<f64>]) -> Tensor<f64> {
-    let c = rows[0].len();
-    ArrayD::from_shape_vec(
-        IxDyn(&[rows.len(), c]),
-        rows.iter().flatten().copied().collect(),
-    )
-    .unwrap()
-}
-
-/// Clip row from NDC (x, y) and view depth w (OpenGL depth with near 1, far 10).
-fn clip_row(x: f64, y: f64, w: f64) -> Vec<f64> {
-    vec![x * w, y * w, (11.0 * w - 20.0) / 9.0, w]
 }
 
 /// Two triangles overlapping in the middle whose depth order swaps across the image (the first

@@ -61,7 +61,8 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::{
-    attribute_grad, cross2, interior_grad, prepare, render_hard, sub, ApproxSettings, Screen,
+    attribute_grad, bin_by_lines, cross2, depth_buffer, edge_weights, interior_grad, prepare,
+    render_hard, sub, ApproxSettings, Screen,
 };
 use crate::error::RenderError;
 use crate::raster::Fragments;
@@ -97,13 +98,7 @@ pub fn deodr<'t, T: Real>(
     } else {
         EdgeSet::empty(settings.height)
     };
-    let zbuf = (0..fragments.num_pixels())
-        .map(|p| {
-            fragments
-                .nearest(p)
-                .map_or(f64::INFINITY, |f| f.depth.to_f64c())
-        })
-        .collect();
+    let zbuf = depth_buffer(&fragments);
     let op = DeodrOp {
         fragments,
         faces,
@@ -240,7 +235,7 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
     });
     let height = screen.height;
     let mut edges = Vec::with_capacity(sil.len());
-    let mut rows: Vec<(usize, usize)> = Vec::with_capacity(sil.len());
+    let mut rows: Vec<Option<(usize, usize)>> = Vec::with_capacity(sil.len());
     for &(_, fk) in &sil {
         let f = faces[fk as usize / 3];
         let k = fk as usize % 3;
@@ -271,7 +266,7 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
         if !(r0 <= r1) {
             continue;
         }
-        rows.push((r0 as usize, r1 as usize));
+        rows.push(Some((r0 as usize, r1 as usize)));
         edges.push(Edge {
             v: [a, b],
             p0,
@@ -284,23 +279,7 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
             q: [a, b].map(|v| 1.0 / screen.w[v as usize]),
         });
     }
-    let mut row_start = vec![0usize; height + 1];
-    for &(r0, r1) in &rows {
-        for r in r0..=r1 {
-            row_start[r + 1] += 1;
-        }
-    }
-    for r in 0..height {
-        row_start[r + 1] += row_start[r];
-    }
-    let mut fill = row_start.clone();
-    let mut row_edges = vec![0u32; row_start[height]];
-    for (ei, &(r0, r1)) in rows.iter().enumerate() {
-        for r in r0..=r1 {
-            row_edges[fill[r]] = ei as u32;
-            fill[r] += 1;
-        }
-    }
+    let (row_start, row_edges) = bin_by_lines(&rows, height);
     EdgeSet {
         edges,
         row_start,
@@ -342,18 +321,6 @@ fn column_range(e: &Edge, row: f64, sigma: f64, width: usize) -> Option<(usize, 
         hi = hi.min(h.ceil());
     }
     (lo <= hi).then_some((lo as usize, hi as usize))
-}
-
-/// The edge's attributes at `t` and the weights of its two vertices: screen-space affine, or
-/// perspective-correct with `q = 1 / w`.
-#[inline]
-fn edge_weights(e: &Edge, t: f64, persp: bool) -> ([f64; 2], f64) {
-    if persp {
-        let den = (1.0 - t) * e.q[0] + t * e.q[1];
-        ([(1.0 - t) * e.q[0] / den, t * e.q[1] / den], den)
-    } else {
-        ([1.0 - t, t], 1.0)
-    }
 }
 
 /// One overdraw layer of a pixel, recorded for the backward.
@@ -419,7 +386,7 @@ impl<T: Real> DeodrOp<T> {
                     continue;
                 }
                 let tr = s / sigma;
-                let (wt, _) = edge_weights(e, t, persp);
+                let (wt, _) = edge_weights(e.q, t, persp);
                 let px = &mut out[x * (c + 1)..(x + 1) * (c + 1)];
                 before.copy_from_slice(px);
                 for ch in 0..c {
@@ -463,7 +430,7 @@ impl<T: Real> DeodrOp<T> {
             let e = &self.edges.edges[l.edge as usize];
             let gp = &mut g[l.x * (c + 1)..(l.x + 1) * (c + 1)];
             let before = &saved[l.before..l.before + c + 1];
-            let (wt, den) = edge_weights(e, l.t, persp);
+            let (wt, den) = edge_weights(e.q, l.t, persp);
             // I = T before + (1 - T) A: dL/dA = (1 - T) g, dL/dT = g . (before - A).
             let mut gtr = gp[c] * (before[c] - 1.0);
             let (mut gt, mut gq0, mut gq1) = (0.0, 0.0, 0.0);

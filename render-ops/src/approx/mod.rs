@@ -1,6 +1,6 @@
 //! Hard-rasterizer methods with boundary gradients: the hard (z-buffer) image forward, with a
 //! hand-written backward that approximates the derivative of the image at occlusion boundaries
-//! (`tf_mesh`, `opendr`), or an antialiased forward with its exact derivative (`deodr`).
+//! (`tf_mesh`, `opendr`, `nmr`), or an antialiased forward with its exact derivative (`deodr`).
 //!
 //! * [`tf_mesh`]: the TF Mesh Renderer (K. Genova, F. Cole, A. Maschinot, A. Sarna, D. Vlasic and
 //!   W. T. Freeman, "Unsupervised Training for 3D Morphable Model Regression", CVPR 2018;
@@ -12,11 +12,15 @@
 //!   Renderer", ECCV 2014; survey section 4.1): the derivative of the pixels with respect to the
 //!   screen-space vertex positions from the image-space gradient of the rendered image (central
 //!   differences `1/2 [-1, 0, 1]`), with interior, single-boundary and multi-boundary pixels.
+//! * [`nmr`]: the Neural 3D Mesh Renderer (H. Kato, Y. Ushiku and T. Harada, CVPR 2018, section
+//!   3.3; survey section 4.2, eq. 1-2): per face, edge and scanline, the pixels an edge would
+//!   sweep as a vertex moves along `x` (or `y`) get the colour change over the distance to the
+//!   crossing, `delta_I / delta_x`, kept only where that change lowers the loss.
 //!
 //! * [`deodr`]: DEODR (M. de La Gorce, D. J. Fleet and N. Paragios, TPAMI 2011; survey section
 //!   4.4): the hard image with silhouette edges overdrawn by a linear ramp (discontinuity edge
 //!   overdraw), a forward that is continuous in the vertex positions, and its exact derivative.
-//!   Unlike the other two, its forward differs from the hard render near silhouettes.
+//!   Unlike the others, its forward differs from the hard render near silhouettes.
 //!
 //! The ops take clip positions `[V, 4]` and per-vertex attributes (colours) `[V, C]` and return
 //! an image `[H, W, C + 1]`: the perspective-correct interpolated attributes of each pixel's
@@ -26,19 +30,22 @@
 //! render (`dI_p / dA_k = b_k` on covered pixels). Position gradients go to `x`, `y` and `w` of
 //! the clip coordinates (`z` only sets visibility and gets none).
 //!
-//! Only interpolated per-vertex attributes are supported: both methods model how the image
+//! Only interpolated per-vertex attributes are supported: the methods model how the image
 //! moves with the geometry, which they can do for attributes that move with the surface, not
 //! for arbitrary per-fragment shaders or textures.
 //!
 //! All work is in `f64` whatever the scalar. Backward contributions are computed in parallel
-//! over image rows and reduced into the vertex gradients in pixel order, so results are
+//! over image rows (for `nmr`, over the rows and then the columns) and reduced into the vertex
+//! gradients in a fixed order (pixel order, row and column order), so results are
 //! bit-identical for any number of rayon threads.
 
 pub mod deodr;
+pub mod nmr;
 pub mod opendr;
 pub mod tf_mesh;
 
 pub use deodr::deodr;
+pub use nmr::nmr;
 pub use opendr::opendr;
 pub use tf_mesh::tf_mesh;
 
@@ -53,7 +60,7 @@ use crate::raster::{Fragments, RasterSettings};
 use crate::rasterize::clip_rows;
 use crate::soft::common::ndc_to_clip;
 
-/// Settings of [`tf_mesh`], [`opendr`] and [`deodr`].
+/// Settings of [`tf_mesh`], [`opendr`], [`nmr`] and [`deodr`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct ApproxSettings {
     /// Image width in pixels.
@@ -138,6 +145,49 @@ pub(crate) fn prepare<'t, T: Real>(
         .map(|ch| T::from_f64c(s.background.get(ch).copied().unwrap_or(0.0)))
         .collect();
     Ok((Arc::new(frags), bg))
+}
+
+/// The state of the ops whose forward is the hard render ([`tf_mesh`], [`opendr`], [`nmr`]):
+/// the fragments of the forward's rasterization, the faces, the settings and the background.
+pub(crate) struct HardRender<T: Real> {
+    pub fragments: Arc<Fragments<T>>,
+    pub faces: Arc<Vec<[u32; 3]>>,
+    pub settings: ApproxSettings,
+    pub background: Vec<T>,
+}
+
+impl<T: Real> HardRender<T> {
+    /// Checks the inputs and rasterizes them ([`prepare`]).
+    pub fn new(
+        op: &'static str,
+        clip: Var<'_, T>,
+        attrs: Var<'_, T>,
+        faces: Arc<Vec<[u32; 3]>>,
+        settings: &ApproxSettings,
+    ) -> Result<Self, RenderError> {
+        let (fragments, background) = prepare(op, clip, attrs, &faces, settings)?;
+        Ok(HardRender {
+            fragments,
+            faces,
+            settings: settings.clone(),
+            background,
+        })
+    }
+
+    /// The op's forward: the hard render ([`render_hard`]) of the attributes `inputs[1]`.
+    pub fn forward(
+        &self,
+        op: &'static str,
+        inputs: &[&Tensor<T>],
+    ) -> autodiff::Result<Vec<Tensor<T>>> {
+        Ok(vec![render_hard(
+            op,
+            &self.fragments,
+            &self.faces,
+            &self.background,
+            inputs[1],
+        )?])
+    }
 }
 
 /// The hard render `[H, W, C + 1]`: per covered pixel `b0 A[f0] + b1 A[f1] + b2 A[f2]` (the
@@ -305,6 +355,21 @@ impl Screen {
         let c = ndc_to_clip(gn, self.ndc[v], self.w[v]);
         [c[0], c[1], 0.0, c[2]]
     }
+
+    /// Chains per-vertex gradients with respect to the pixel positions `(col, row)` to clip
+    /// coordinates (vertices with a zero gradient get zeros).
+    pub fn px_grads_to_clip(&self, acc: &[[f64; 2]]) -> Vec<[f64; 4]> {
+        acc.iter()
+            .enumerate()
+            .map(|(v, &g)| {
+                if g == [0.0, 0.0] {
+                    [0.0; 4]
+                } else {
+                    self.px_to_clip(v, g)
+                }
+            })
+            .collect()
+    }
 }
 
 #[inline]
@@ -340,16 +405,114 @@ pub(crate) fn reduce_rows(screen: &Screen, rows: Vec<Vec<(u32, [f64; 2])>>) -> V
             a[1] += g[1];
         }
     }
-    acc.iter()
-        .enumerate()
-        .map(|(v, &g)| {
-            if g == [0.0, 0.0] {
-                [0.0; 4]
-            } else {
-                screen.px_to_clip(v, g)
-            }
+    screen.px_grads_to_clip(&acc)
+}
+
+/// What a boundary term of [`HardRender::backward`] reads, in `f64`.
+pub(crate) struct BoundaryInputs {
+    /// Screen geometry of the vertices.
+    pub screen: Screen,
+    /// `dL/dI`, `[H * W * (C + 1)]`.
+    pub g: Vec<f64>,
+    /// The vertex attributes, `[V * C]`.
+    pub attrs: Vec<f64>,
+    /// The rendered image, `[H * W * (C + 1)]`.
+    pub img: Vec<f64>,
+}
+
+impl<T: Real> HardRender<T> {
+    /// The backward of the methods whose forward is the hard render and whose position
+    /// gradient is the interior one plus a boundary term ([`tf_mesh`], [`nmr`]): exact
+    /// attribute gradients ([`attribute_grad`]) and, for the positions, the interior
+    /// (barycentric) part of [`interior_grad`] plus the method's `boundary` part (per-vertex
+    /// clip coordinates, `f64`), each computed only where the input needs it.
+    pub fn backward(
+        &self,
+        op: &'static str,
+        ctx: &BackwardCtx<'_, T>,
+        boundary: impl FnOnce(&BoundaryInputs) -> Vec<[f64; 4]>,
+    ) -> autodiff::Result<Vec<Option<Tensor<T>>>> {
+        let (frags, faces) = (&*self.fragments, &self.faces[..]);
+        let g_out = ctx.grad_outputs[0].as_standard_layout();
+        let g_t = g_out.as_slice().expect("standard");
+        let attr_t = ctx.inputs[1].as_standard_layout();
+        let attr_t = attr_t.as_slice().expect("standard");
+        let g_attr =
+            ctx.needs_grad[1].then(|| attribute_grad(frags, faces, ctx.inputs[1].shape(), g_t));
+        if !ctx.needs_grad[0] {
+            return Ok(vec![None, g_attr]);
+        }
+        let interior = interior_grad(op, ctx.inputs[0], faces, frags, attr_t, g_t, &self.settings)?;
+        let inputs = BoundaryInputs {
+            screen: Screen::new(ctx.inputs[0], frags.width, frags.height),
+            g: grad_f64(ctx),
+            attrs: attr_t.iter().map(|x| x.to_f64c()).collect(),
+            img: ctx.outputs[0].iter().map(|x| x.to_f64c()).collect(),
+        };
+        let b = boundary(&inputs);
+        let total = interior
+            .iter()
+            .zip(&b)
+            .map(|(a, b)| {
+                let a = a.map(|x| x.to_f64c());
+                [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]]
+            })
+            .collect();
+        Ok(vec![Some(clip_tensor(total)), g_attr])
+    }
+}
+
+/// NDC depth of each pixel's nearest fragment (infinity where nothing is covered): the
+/// z-buffer that boundary terms test against.
+pub(crate) fn depth_buffer<T: Real>(frags: &Fragments<T>) -> Vec<f64> {
+    (0..frags.num_pixels())
+        .map(|p| {
+            frags
+                .nearest(p)
+                .map_or(f64::INFINITY, |f| f.depth.to_f64c())
         })
         .collect()
+}
+
+/// Bins items by the image lines (rows or columns) they reach: `ranges[i]` is the inclusive
+/// range of lines of item `i` (`None`: none). Returns a CSR over the `n` lines, `(start,
+/// items)`: the items reaching line `l` are `items[start[l]..start[l + 1]]`, in increasing
+/// order.
+pub(crate) fn bin_by_lines(ranges: &[Option<(usize, usize)>], n: usize) -> (Vec<usize>, Vec<u32>) {
+    let mut start = vec![0usize; n + 1];
+    for &(l0, l1) in ranges.iter().flatten() {
+        for l in l0..=l1 {
+            start[l + 1] += 1;
+        }
+    }
+    for l in 0..n {
+        start[l + 1] += start[l];
+    }
+    let mut fill = start.clone();
+    let mut items = vec![0u32; start[n]];
+    for (i, r) in ranges.iter().enumerate() {
+        if let Some((l0, l1)) = *r {
+            for l in l0..=l1 {
+                items[fill[l]] = i as u32;
+                fill[l] += 1;
+            }
+        }
+    }
+    (start, items)
+}
+
+/// Weights of the two endpoints of an edge at screen-space parameter `t` (0 at the first),
+/// with `q = 1 / w` at the endpoints: perspective-correct, `((1 - t) q0, t q1) / den` with
+/// `den = (1 - t) q0 + t q1`, or affine `(1 - t, t)` with `den = 1`. The attributes the face
+/// shows at that point of its edge are `w0 A0 + w1 A1`.
+#[inline]
+pub(crate) fn edge_weights(q: [f64; 2], t: f64, persp: bool) -> ([f64; 2], f64) {
+    if persp {
+        let den = (1.0 - t) * q[0] + t * q[1];
+        ([(1.0 - t) * q[0] / den, t * q[1] / den], den)
+    } else {
+        ([1.0 - t, t], 1.0)
+    }
 }
 
 /// Gradient of the loss with respect to the output, `[H * W * (C + 1)]`, in `f64`.

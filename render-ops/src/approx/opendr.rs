@@ -57,11 +57,10 @@ use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
 use rayon::prelude::*;
 
 use super::{
-    attribute_grad, clip_tensor, grad_f64, prepare, reduce_rows, render_hard, screen_bary,
-    ApproxSettings, Screen,
+    attribute_grad, clip_tensor, grad_f64, reduce_rows, screen_bary, ApproxSettings, HardRender,
+    Screen,
 };
 use crate::error::RenderError;
-use crate::raster::Fragments;
 
 /// Renders per-vertex attributes `[V, C]` over the faces from clip positions `[V, 4]` with
 /// OpenDR's image-gradient derivatives: an image `[H, W, C + 1]` (attributes over the
@@ -77,19 +76,14 @@ pub fn opendr<'t, T: Real>(
     faces: Arc<Vec<[u32; 3]>>,
     settings: &ApproxSettings,
 ) -> Result<Var<'t, T>, RenderError> {
-    let (fragments, background) = prepare("opendr", clip, attrs, &faces, settings)?;
     let op = OpenDrOp {
-        fragments,
-        faces,
-        background,
+        hard: HardRender::new("opendr", clip, attrs, faces, settings)?,
     };
     Ok(clip.tape().apply(op, &[clip, attrs]))
 }
 
 struct OpenDrOp<T: Real> {
-    fragments: Arc<Fragments<T>>,
-    faces: Arc<Vec<[u32; 3]>>,
-    background: Vec<T>,
+    hard: HardRender<T>,
 }
 
 /// What the backward needs per pixel: its nearest face and NDC depth.
@@ -106,7 +100,7 @@ impl<T: Real> OpenDrOp<T> {
             (None, None) => None,
             (Some(f), None) | (None, Some(f)) => Some(f),
             (Some(fa), Some(fb)) => {
-                let (va, vb) = (self.faces[fa as usize], self.faces[fb as usize]);
+                let (va, vb) = (self.hard.faces[fa as usize], self.hard.faces[fb as usize]);
                 if fa == fb || va.iter().any(|i| vb.contains(i)) {
                     None
                 } else if b.depth < a.depth {
@@ -128,8 +122,8 @@ impl<T: Real> OpenDrOp<T> {
         row: usize,
         out: &mut Vec<(u32, [f64; 2])>,
     ) {
-        let (w, h) = (self.fragments.width, self.fragments.height);
-        let nc = self.background.len() + 1;
+        let (w, h) = (self.hard.fragments.width, self.hard.fragments.height);
+        let nc = self.hard.background.len() + 1;
         for col in 0..w {
             let p = row * w + col;
             let gp = &g[p * nc..(p + 1) * nc];
@@ -163,7 +157,7 @@ impl<T: Real> OpenDrOp<T> {
                             None => continue,
                         },
                     };
-                    let f = self.faces[face as usize];
+                    let f = self.hard.faces[face as usize];
                     let Some((v, area2)) = screen.triangle(f) else {
                         continue;
                     };
@@ -193,22 +187,16 @@ impl<T: Real> Op<T> for OpenDrOp<T> {
     }
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        Ok(vec![render_hard(
-            "opendr",
-            &self.fragments,
-            &self.faces,
-            &self.background,
-            inputs[1],
-        )?])
+        self.hard.forward("opendr", inputs)
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let fr = &self.fragments;
+        let fr = &self.hard.fragments;
         let g_attr = ctx.needs_grad[1].then(|| {
             let g = ctx.grad_outputs[0].as_standard_layout();
             attribute_grad(
                 fr,
-                &self.faces,
+                &self.hard.faces,
                 ctx.inputs[1].shape(),
                 g.as_slice().expect("standard"),
             )

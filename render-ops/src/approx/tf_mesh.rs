@@ -60,12 +60,8 @@ use std::sync::Arc;
 use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
 use rayon::prelude::*;
 
-use super::{
-    attribute_grad, clip_tensor, grad_f64, interior_grad, prepare, reduce_rows, render_hard, sub,
-    ApproxSettings, Screen,
-};
+use super::{reduce_rows, sub, ApproxSettings, HardRender, Screen};
 use crate::error::RenderError;
-use crate::raster::Fragments;
 
 /// The 8 neighbours of a pixel, `(d_row, d_col)`, in the fixed order they are tried.
 const NEIGHBOURS: [(isize, isize); 8] = [
@@ -93,21 +89,14 @@ pub fn tf_mesh<'t, T: Real>(
     faces: Arc<Vec<[u32; 3]>>,
     settings: &ApproxSettings,
 ) -> Result<Var<'t, T>, RenderError> {
-    let (fragments, background) = prepare("tf_mesh", clip, attrs, &faces, settings)?;
     let op = TfMeshOp {
-        fragments,
-        faces,
-        settings: settings.clone(),
-        background,
+        hard: HardRender::new("tf_mesh", clip, attrs, faces, settings)?,
     };
     Ok(clip.tape().apply(op, &[clip, attrs]))
 }
 
 struct TfMeshOp<T: Real> {
-    fragments: Arc<Fragments<T>>,
-    faces: Arc<Vec<[u32; 3]>>,
-    settings: ApproxSettings,
-    background: Vec<T>,
+    hard: HardRender<T>,
 }
 
 /// Where a pixel centre lies relative to a triangle: its signed distance and the closest
@@ -188,9 +177,9 @@ impl<T: Real> TfMeshOp<T> {
         col: usize,
         out: &mut Vec<(u32, [f64; 2])>,
     ) {
-        let fr = &self.fragments;
+        let fr = &self.hard.fragments;
         let (w, h) = (fr.width, fr.height);
-        let f = self.faces[fq as usize];
+        let f = self.hard.faces[fq as usize];
         let Some((v, area2)) = screen.triangle(f) else {
             return;
         };
@@ -227,13 +216,13 @@ impl<T: Real> TfMeshOp<T> {
         if !(s > -0.5) {
             return;
         }
-        let c = self.background.len();
+        let c = self.hard.background.len();
         let p = row * w + col;
         let gp = &g[p * (c + 1)..(p + 1) * (c + 1)];
         // dL/dalpha = sum_ch g_ch (I_ch - B_ch) + g_alpha, with I the pixel's colour.
         let mut ga = gp[c];
         for ch in 0..c {
-            ga += gp[ch] * (img[p * (c + 1) + ch] - self.background[ch].to_f64c());
+            ga += gp[ch] * (img[p * (c + 1) + ch] - self.hard.background[ch].to_f64c());
         }
         if ga == 0.0 || !ga.is_finite() {
             return;
@@ -254,7 +243,7 @@ impl<T: Real> TfMeshOp<T> {
         row: usize,
         col: usize,
     ) -> Option<[f64; 3]> {
-        if !self.settings.perspective_correct {
+        if !self.hard.settings.perspective_correct {
             return Some(super::screen_bary(v, area2, [col as f64, row as f64]));
         }
         let (wf, hf) = (screen.width as f64, screen.height as f64);
@@ -292,9 +281,9 @@ impl<T: Real> TfMeshOp<T> {
         row: usize,
         out: &mut Vec<(u32, [f64; 2])>,
     ) {
-        let fr = &self.fragments;
+        let fr = &self.hard.fragments;
         let (w, h) = (fr.width, fr.height);
-        let c = self.background.len();
+        let c = self.hard.background.len();
         for col in 0..w {
             let p = row * w + col;
             let gp = &g[p * (c + 1)..(p + 1) * (c + 1)];
@@ -317,7 +306,7 @@ impl<T: Real> TfMeshOp<T> {
                 if best.is_some_and(|b| b.0 == fq) {
                     continue;
                 }
-                let Some((v, area2)) = screen.triangle(self.faces[fq as usize]) else {
+                let Some((v, area2)) = screen.triangle(self.hard.faces[fq as usize]) else {
                     continue;
                 };
                 let Some(o) = outside(&v, area2, [col as f64, row as f64]) else {
@@ -333,7 +322,7 @@ impl<T: Real> TfMeshOp<T> {
             if !(o.s < 0.5) {
                 continue;
             }
-            let f = self.faces[fq as usize];
+            let f = self.hard.faces[fq as usize];
             let Some(b) = self.extrapolated(screen, f, &v, area2, row, col) else {
                 continue;
             };
@@ -341,7 +330,7 @@ impl<T: Real> TfMeshOp<T> {
             let mut ga = gp[c];
             for ch in 0..c {
                 let fch: f64 = (0..3).map(|k| b[k] * attrs[f[k] as usize * c + ch]).sum();
-                ga += gp[ch] * (fch - self.background[ch].to_f64c());
+                ga += gp[ch] * (fch - self.hard.background[ch].to_f64c());
             }
             if ga == 0.0 || !ga.is_finite() {
                 continue;
@@ -360,57 +349,22 @@ impl<T: Real> Op<T> for TfMeshOp<T> {
     }
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        Ok(vec![render_hard(
-            "tf_mesh",
-            &self.fragments,
-            &self.faces,
-            &self.background,
-            inputs[1],
-        )?])
+        self.hard.forward("tf_mesh", inputs)
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let fr = &self.fragments;
-        let g_out = ctx.grad_outputs[0].as_standard_layout();
-        let g_t = g_out.as_slice().expect("standard");
-        let attr_t = ctx.inputs[1].as_standard_layout();
-        let attr_t = attr_t.as_slice().expect("standard");
-        let g_attr =
-            ctx.needs_grad[1].then(|| attribute_grad(fr, &self.faces, ctx.inputs[1].shape(), g_t));
-        if !ctx.needs_grad[0] {
-            return Ok(vec![None, g_attr]);
-        }
-        let interior = interior_grad(
-            "tf_mesh",
-            ctx.inputs[0],
-            &self.faces,
-            fr,
-            attr_t,
-            g_t,
-            &self.settings,
-        )?;
-        // Band of background pixels along the silhouette.
-        let screen = Screen::new(ctx.inputs[0], fr.width, fr.height);
-        let g = grad_f64(ctx);
-        let attrs: Vec<f64> = attr_t.iter().map(|x| x.to_f64c()).collect();
-        let img: Vec<f64> = ctx.outputs[0].iter().map(|x| x.to_f64c()).collect();
-        let band: Vec<Vec<(u32, [f64; 2])>> = (0..fr.height)
-            .into_par_iter()
-            .map(|row| {
-                let mut out = Vec::new();
-                self.band_row(&screen, &attrs, &img, &g, row, &mut out);
-                out
-            })
-            .collect();
-        let band = reduce_rows(&screen, band);
-        let total: Vec<[f64; 4]> = interior
-            .iter()
-            .zip(&band)
-            .map(|(a, b)| {
-                let a = a.map(|x| x.to_f64c());
-                [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]]
-            })
-            .collect();
-        Ok(vec![Some(clip_tensor(total)), g_attr])
+        let fr = &self.hard.fragments;
+        self.hard.backward("tf_mesh", ctx, |b| {
+            // Band of background pixels along the silhouette.
+            let band: Vec<Vec<(u32, [f64; 2])>> = (0..fr.height)
+                .into_par_iter()
+                .map(|row| {
+                    let mut out = Vec::new();
+                    self.band_row(&b.screen, &b.attrs, &b.img, &b.g, row, &mut out);
+                    out
+                })
+                .collect();
+            reduce_rows(&b.screen, band)
+        })
     }
 }
