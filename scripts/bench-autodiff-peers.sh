@@ -17,7 +17,7 @@ for t in 1 2; do
   "$PEERS/py.sh" bench_autograd_micro.py --threads $t --reps 9 >/dev/null
   (cd "$ROOT" && RAYON_NUM_THREADS=$t cargo bench -p tapestry-autodiff --bench tape -- \
     --warm-up-time 1 --measurement-time 3 >"$OUT/tape-$t.txt" 2>&1)
-  cp -r "$ROOT/target/criterion" "$OUT/criterion-$t"
+  rm -rf "$OUT/criterion-$t" && cp -r "$ROOT/target/criterion" "$OUT/criterion-$t"
 done
 python3 - "$OUT" <<'PY'
 import json, os, sys
