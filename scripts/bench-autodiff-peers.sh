@@ -9,7 +9,10 @@
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 PEERS=${1:-$ROOT/../shared/peers}
-OUT=${OUT:-$ROOT/target/bench-peers}
+# Criterion writes its results under cargo's target directory (CARGO_TARGET_DIR when set).
+TARGET=${CARGO_TARGET_DIR:-$ROOT/target}
+case $TARGET in /*) ;; *) TARGET=$ROOT/$TARGET ;; esac # cargo runs in $ROOT below
+OUT=${OUT:-$TARGET/bench-peers}
 mkdir -p "$OUT"
 export PEER_RESULTS_DIR=$OUT
 rm -f "$OUT/autograd_micro.jsonl"
@@ -17,7 +20,7 @@ for t in 1 2; do
   "$PEERS/py.sh" bench_autograd_micro.py --threads $t --reps 9 >/dev/null
   (cd "$ROOT" && RAYON_NUM_THREADS=$t cargo bench -p tapestry-autodiff --bench tape -- \
     --warm-up-time 1 --measurement-time 3 >"$OUT/tape-$t.txt" 2>&1)
-  rm -rf "$OUT/criterion-$t" && cp -r "$ROOT/target/criterion" "$OUT/criterion-$t"
+  rm -rf "$OUT/criterion-$t" && cp -r "$TARGET/criterion" "$OUT/criterion-$t"
 done
 python3 - "$OUT" <<'PY'
 import json, os, sys
