@@ -44,6 +44,24 @@ pub trait Op<T: Real>: 'static {
     /// Returns, for every input, the gradient of the loss (same shape as the input), or `None`
     /// where `ctx.needs_grad` is false.
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>>;
+    /// [`Op::backward`] of a single-output op, given its output gradient by value: the tape
+    /// drops it afterwards, so an op may compute an input's gradient in its buffer instead of
+    /// allocating one (elementwise ops do). The default borrows it and calls
+    /// [`Op::backward`]; an override must return the same values.
+    fn backward_owned(
+        &self,
+        inputs: &[&Tensor<T>],
+        outputs: &[&Tensor<T>],
+        needs_grad: &[bool],
+        grad_output: Tensor<T>,
+    ) -> Result<Vec<Option<Tensor<T>>>> {
+        self.backward(&BackwardCtx {
+            inputs,
+            outputs,
+            grad_outputs: &[&grad_output],
+            needs_grad,
+        })
+    }
 }
 
 struct Slot<T: Real> {
@@ -405,26 +423,6 @@ impl<T: Real> Tape<T> {
                 .iter()
                 .map(|&o| &*inner.slots[o as usize].value)
                 .collect();
-            // Missing output gradients of multi-output ops are zeros.
-            let zeros: SmallVec<[Option<Tensor<T>>; 2]> = rec
-                .outputs
-                .iter()
-                .zip(&out_vals)
-                .map(|(&o, val)| {
-                    grads[o as usize]
-                        .is_none()
-                        .then(|| ArrayD::zeros(IxDyn(val.shape())))
-                })
-                .collect();
-            let gouts: SmallVec<[&Tensor<T>; 2]> = rec
-                .outputs
-                .iter()
-                .zip(&zeros)
-                .map(|(&o, z)| {
-                    z.as_ref()
-                        .unwrap_or_else(|| grads[o as usize].as_ref().unwrap())
-                })
-                .collect();
             let in_vals: SmallVec<[&Tensor<T>; 4]> = rec
                 .inputs
                 .iter()
@@ -436,15 +434,40 @@ impl<T: Real> Tape<T> {
                     .iter()
                     .map(|&i| inner.slots[i as usize].requires_grad),
             );
-            let ctx = BackwardCtx {
-                inputs: &in_vals,
-                outputs: &out_vals,
-                grad_outputs: &gouts,
-                needs_grad: &needs,
+            let gins = if let [o] = rec.outputs[..] {
+                // A single output's gradient is not needed after this op: hand it over, so
+                // that elementwise backwards reuse its buffer.
+                let g = grads[o as usize].take().expect("checked above");
+                rec.op.backward_owned(&in_vals, &out_vals, &needs, g)?
+            } else {
+                // Missing output gradients of multi-output ops are zeros.
+                let zeros: SmallVec<[Option<Tensor<T>>; 2]> = rec
+                    .outputs
+                    .iter()
+                    .zip(&out_vals)
+                    .map(|(&o, val)| {
+                        grads[o as usize]
+                            .is_none()
+                            .then(|| ArrayD::zeros(IxDyn(val.shape())))
+                    })
+                    .collect();
+                let gouts: SmallVec<[&Tensor<T>; 2]> = rec
+                    .outputs
+                    .iter()
+                    .zip(&zeros)
+                    .map(|(&o, z)| {
+                        z.as_ref()
+                            .unwrap_or_else(|| grads[o as usize].as_ref().unwrap())
+                    })
+                    .collect();
+                let ctx = BackwardCtx {
+                    inputs: &in_vals,
+                    outputs: &out_vals,
+                    grad_outputs: &gouts,
+                    needs_grad: &needs,
+                };
+                rec.op.backward(&ctx)?
             };
-            let gins = rec.op.backward(&ctx)?;
-            drop(gouts);
-            drop(zeros);
             if gins.len() != rec.inputs.len() {
                 return Err(AutodiffError::Op {
                     op: rec.op.name(),
@@ -481,7 +504,7 @@ impl<T: Real> Tape<T> {
                     });
                 }
                 match &mut grads[inp as usize] {
-                    Some(acc) => *acc += &g,
+                    Some(acc) => crate::tensor::add_assign(acc, &g),
                     slot @ None => *slot = Some(g),
                 }
             }

@@ -8,7 +8,7 @@
 
 use std::mem::MaybeUninit;
 
-use ndarray::{ArrayD, ArrayViewD, Axis, IxDyn, Zip};
+use ndarray::{ArrayD, ArrayViewD, Axis, Dimension, IxDyn, Zip};
 use rayon::prelude::*;
 
 use crate::error::{AutodiffError, Result};
@@ -218,6 +218,197 @@ macro_rules! multiversion {
 multiversion!(fill1, fill1_body, (a: &[T]), f: [Fn(T) -> T]);
 multiversion!(fill2, fill2_body, (a: &[T], b: &[T]), f: [Fn(T, T) -> T]);
 multiversion!(fill3, fill3_body, (a: &[T], b: &[T], c: &[T]), f: [Fn(T, T, T) -> T]);
+
+/// In-place elementwise loop bodies, `o[i] = f(o[i], a[i], ...)`, multiversioned as
+/// [`multiversion!`] (the same IEEE operations in each variant).
+macro_rules! multiversion_inplace {
+    ($name:ident, $body:ident, ($($a:ident: $ta:ty),*), $f:ident: [$($tf:tt)+]) => {
+        #[inline(always)]
+        #[allow(unused_variables)] // `n` and `i` in the one-argument variant
+        fn $body<T: Real, F: $($tf)+>(o: &mut [T], $($a: $ta,)* $f: &F) {
+            let n = o.len();
+            $(let $a = &$a[..n];)*
+            for (i, o) in o.iter_mut().enumerate() {
+                *o = $f(*o, $($a[i]),*);
+            }
+        }
+        fn $name<T: Real, F: $($tf)+>(o: &mut [T], $($a: $ta,)* $f: &F) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
+                unsafe fn wide512<T: Real, F: $($tf)+>(o: &mut [T], $($a: $ta,)* $f: &F) {
+                    $body(o, $($a,)* $f)
+                }
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn wide<T: Real, F: $($tf)+>(o: &mut [T], $($a: $ta,)* $f: &F) {
+                    $body(o, $($a,)* $f)
+                }
+                if std::arch::is_x86_feature_detected!("avx512f")
+                    && std::arch::is_x86_feature_detected!("avx512vl")
+                    && std::arch::is_x86_feature_detected!("avx512dq")
+                    && std::arch::is_x86_feature_detected!("avx512bw")
+                {
+                    // SAFETY: the CPU has the features `wide512` is compiled for.
+                    return unsafe { wide512(o, $($a,)* $f) };
+                }
+                if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU has the features `wide` is compiled for.
+                    return unsafe { wide(o, $($a,)* $f) };
+                }
+            }
+            $body(o, $($a,)* $f)
+        }
+    };
+}
+
+multiversion_inplace!(upd1, upd1_body, (), f: [Fn(T) -> T]);
+multiversion_inplace!(upd2, upd2_body, (a: &[T]), f: [Fn(T, T) -> T]);
+multiversion_inplace!(upd3, upd3_body, (a: &[T], b: &[T]), f: [Fn(T, T, T) -> T]);
+
+/// Runs `f(chunk, offset)` over fixed [`EW_CHUNK`] chunks of `o` (in parallel from
+/// [`PAR_MIN_LEN`] elements).
+fn par_update<T: Real>(o: &mut [T], f: impl Fn(&mut [T], usize) + Sync) {
+    if o.len() >= PAR_MIN_LEN {
+        o.par_chunks_mut(EW_CHUNK)
+            .enumerate()
+            .for_each(|(i, c)| f(c, i * EW_CHUNK));
+    } else {
+        f(o, 0);
+    }
+}
+
+/// An output gradient handed to an elementwise backward: owned (the tape no longer needs it, so
+/// the input's gradient is computed in its buffer when the layouts allow) or borrowed (a new
+/// tensor is allocated). Either way each element gets the same value.
+pub enum GradArg<'a, T: Real> {
+    /// The gradient by value: updated in place.
+    Owned(Tensor<T>),
+    /// A borrowed gradient: results go to a new tensor.
+    Borrowed(&'a Tensor<T>),
+}
+
+impl<T: Real> GradArg<'_, T> {
+    /// The gradient, read-only.
+    pub fn get(&self) -> &Tensor<T> {
+        match self {
+            GradArg::Owned(t) => t,
+            GradArg::Borrowed(t) => t,
+        }
+    }
+
+    /// A borrowed handle to the same gradient (for all but the last use).
+    pub fn borrowed(&self) -> GradArg<'_, T> {
+        GradArg::Borrowed(self.get())
+    }
+
+    /// The gradient itself (moved when owned, copied when borrowed).
+    pub fn into_owned(self) -> Tensor<T> {
+        match self {
+            GradArg::Owned(t) => t,
+            GradArg::Borrowed(t) => t.clone(),
+        }
+    }
+
+    /// The owned gradient when it is row-major and has `shape`, for an in-place update.
+    fn inplace(self, shape: &[usize]) -> std::result::Result<Tensor<T>, Self> {
+        match self {
+            GradArg::Owned(t) if t.shape() == shape && t.is_standard_layout() => Ok(t),
+            other => Err(other),
+        }
+    }
+
+    /// `f(g)` for every element.
+    pub fn map1<F>(self, f: F) -> Tensor<T>
+    where
+        F: Fn(T) -> T + Sync + Send,
+    {
+        let shape = self.get().raw_dim();
+        match self.inplace(shape.slice()) {
+            Ok(mut g) => {
+                let s = g.as_slice_mut().expect("standard layout");
+                par_update(s, |o, _| upd1(o, &f));
+                g
+            }
+            Err(g) => map1(g.get(), f),
+        }
+    }
+
+    /// `f(g, x)` for every element (`x` has the gradient's shape).
+    pub fn map2<F>(self, x: &ArrayViewD<T>, f: F) -> Tensor<T>
+    where
+        F: Fn(T, T) -> T + Sync + Send,
+    {
+        match (x.as_slice(), self.inplace(x.shape())) {
+            (Some(a), Ok(mut g)) => {
+                let s = g.as_slice_mut().expect("standard layout");
+                par_update(s, |o, at| upd2(o, &a[at..at + o.len()], &f));
+                g
+            }
+            (_, Ok(g)) => map2(&g.view(), x, f),
+            (_, Err(g)) => map2(&g.get().view(), x, f),
+        }
+    }
+
+    /// [`map2`]'s fast variant: `fast(g, x)`, and `exact(g, x)` where `ok(g, x)` fails (the
+    /// vectorised `f32` transcendentals, see [`map2_fast`]).
+    pub fn map2_fast<F, P, E>(self, x: &ArrayViewD<T>, fast: F, ok: P, exact: E) -> Tensor<T>
+    where
+        F: Fn(T, T) -> T + Sync + Send,
+        P: Fn(T, T) -> bool + Sync + Send,
+        E: Fn(T, T) -> T + Sync + Send,
+    {
+        match (x.as_slice(), T::FAST_MATH, self.inplace(x.shape())) {
+            (Some(a), true, Ok(mut g)) => {
+                let s = g.as_slice_mut().expect("standard layout");
+                par_update(s, |o, at| {
+                    let a = &a[at..at + o.len()];
+                    // `ok` is checked before `o` (the gradient) is overwritten.
+                    if o.iter().zip(a).fold(true, |acc, (&u, &v)| acc & ok(u, v)) {
+                        upd2(o, a, &fast);
+                    } else {
+                        for (o, &v) in o.iter_mut().zip(a) {
+                            *o = if ok(*o, v) { fast(*o, v) } else { exact(*o, v) };
+                        }
+                    }
+                });
+                g
+            }
+            (_, _, Ok(g)) => map2_fast(&g.view(), x, fast, ok, exact),
+            (_, _, Err(g)) => map2_fast(&g.get().view(), x, fast, ok, exact),
+        }
+    }
+
+    /// `f(g, x, y)` for every element (`x` and `y` have the gradient's shape).
+    pub fn map3<F>(self, x: &ArrayViewD<T>, y: &ArrayViewD<T>, f: F) -> Tensor<T>
+    where
+        F: Fn(T, T, T) -> T + Sync + Send,
+    {
+        let same = x.shape() == y.shape();
+        match (x.as_slice(), y.as_slice(), same, self.inplace(x.shape())) {
+            (Some(a), Some(b), true, Ok(mut g)) => {
+                let s = g.as_slice_mut().expect("standard layout");
+                par_update(s, |o, at| {
+                    let r = at..at + o.len();
+                    upd3(o, &a[r.clone()], &b[r], &f)
+                });
+                g
+            }
+            (_, _, _, Ok(g)) => map3(&g.view(), x, y, f),
+            (_, _, _, Err(g)) => map3(&g.get().view(), x, y, f),
+        }
+    }
+}
+
+/// `acc += g` elementwise (same shape), in place and in parallel for large tensors.
+pub fn add_assign<T: Real>(acc: &mut Tensor<T>, g: &Tensor<T>) {
+    if acc.shape() == g.shape() {
+        if let (Some(a), Some(b)) = (acc.as_slice_mut(), g.as_slice()) {
+            par_update(a, |o, at| upd2(o, &b[at..at + o.len()], &|x, y| x + y));
+            return;
+        }
+    }
+    *acc += g;
+}
 
 /// Row-major slice of a view, if it has one.
 fn std_slice<'a, T: Real>(x: &'a ArrayViewD<'_, T>) -> Option<&'a [T]> {

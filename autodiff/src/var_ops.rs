@@ -7,7 +7,7 @@ use std::ops::{Add, Div, Mul, Neg, Sub};
 
 use ndarray::ArrayD;
 
-use crate::ops::elementwise::{Binary, BinaryOp, Unary, UnaryOp, WhereOp};
+use crate::ops::elementwise::{Binary, BinaryOp, MulSelfOp, Unary, UnaryOp, WhereOp};
 use crate::ops::index::{GatherOp, IndexSelectOp, ScatterAddOp};
 use crate::ops::linalg::MatMulOp;
 use crate::ops::reduce::{LogSumExpOp, MaxOp, SumOp};
@@ -32,6 +32,10 @@ impl<'t, T: Real> Var<'t, T> {
         self.tape().apply(UnaryOp(k), &[self])
     }
     fn binary(self, k: Binary, o: Self) -> Self {
+        if k == Binary::Mul && self.id() == o.id() && std::ptr::eq(self.tape(), o.tape()) {
+            // `x * x`: one gradient tensor instead of two added together.
+            return self.tape().apply(MulSelfOp, &[self]);
+        }
         self.tape().apply(BinaryOp(k), &[self, o])
     }
     /// e^x

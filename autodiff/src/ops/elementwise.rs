@@ -5,13 +5,11 @@
 //! conventions: relu'(0) = abs'(0) = 0, clamp passes the gradient on the closed interval,
 //! min/max split it equally on ties.
 
-use ndarray::{ArrayD, IxDyn};
+use ndarray::{ArrayD, Dimension, IxDyn};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{
-    broadcast_shapes, map1, map1_fast, map2, map2_fast, map3, sum_to_shape, Tensor,
-};
+use crate::tensor::{broadcast_shapes, map1, map1_fast, map2, sum_to_shape, GradArg, Tensor};
 use crate::Real;
 
 /// Unary elementwise kinds; some carry a scalar parameter.
@@ -153,55 +151,65 @@ impl<T: Real> Op<T> for UnaryOp<T> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let g0 = ctx.grad_outputs[0];
-        let (g, x, y) = (g0.view(), ctx.inputs[0].view(), ctx.outputs[0].view());
+        let g = GradArg::Borrowed(ctx.grad_outputs[0]);
+        Ok(vec![Some(self.grad(g, ctx.inputs[0], ctx.outputs[0]))])
+    }
+
+    fn backward_owned(
+        &self,
+        inputs: &[&Tensor<T>],
+        outputs: &[&Tensor<T>],
+        needs_grad: &[bool],
+        grad_output: Tensor<T>,
+    ) -> Result<Vec<Option<Tensor<T>>>> {
+        if !needs_grad[0] {
+            return Ok(vec![None]);
+        }
+        let g = GradArg::Owned(grad_output);
+        Ok(vec![Some(self.grad(g, inputs[0], outputs[0]))])
+    }
+}
+
+impl<T: Real> UnaryOp<T> {
+    /// The input's gradient from the output's gradient `g` (in `g`'s buffer when owned).
+    fn grad(&self, g: GradArg<'_, T>, x: &Tensor<T>, y: &Tensor<T>) -> Tensor<T> {
+        let (x, y) = (x.view(), y.view());
         let (z, one, two) = (T::zero(), T::one(), T::one() + T::one());
-        let gx = match self.0 {
-            Unary::Neg => map1(g0, |g| -g),
-            Unary::Exp => map2(&g, &y, |g, y| g * y),
-            Unary::Log => map2(&g, &x, |g, x| g / x),
-            Unary::Sqrt => map2(&g, &y, |g, y| g / (two * y)),
-            Unary::Sin => map2_fast(
-                &g,
+        match self.0 {
+            Unary::Neg => g.map1(|g| -g),
+            Unary::Exp => g.map2(&y, |g, y| g * y),
+            Unary::Log => g.map2(&x, |g, x| g / x),
+            Unary::Sqrt => g.map2(&y, |g, y| g / (two * y)),
+            Unary::Sin => g.map2_fast(
                 &x,
                 |g, x| g * x.k_cos(),
                 |_, x| x.k_trig_ok(),
                 |g, x| g * x.cos(),
             ),
-            Unary::Cos => map2_fast(
-                &g,
+            Unary::Cos => g.map2_fast(
                 &x,
                 |g, x| -g * x.k_sin(),
                 |_, x| x.k_trig_ok(),
                 |g, x| -g * x.sin(),
             ),
-            Unary::Tanh => map2(&g, &y, |g, y| g * (one - y * y)),
-            Unary::Sigmoid => map2(&g, &y, |g, y| g * y * (one - y)),
-            Unary::Relu => map2(&g, &x, |g, x| if x > z { g } else { z }),
-            Unary::Abs => map2(&g, &x, |g, x| {
+            Unary::Tanh => g.map2(&y, |g, y| g * (one - y * y)),
+            Unary::Sigmoid => g.map2(&y, |g, y| g * y * (one - y)),
+            Unary::Relu => g.map2(&x, |g, x| if x > z { g } else { z }),
+            Unary::Abs => g.map2(&x, |g, x| {
                 g * x.signum() * T::from_f64c((x != z) as u8 as f64)
             }),
-            Unary::Square => map2(&g, &x, |g, x| two * g * x),
-            Unary::Recip => map2(&g, &y, |g, y| -g * y * y),
-            Unary::AddScalar(_) => ctx.grad_outputs[0].clone(),
-            Unary::MulScalar(c) => map1(g0, |g| g * c),
-            Unary::RSubScalar(_) => map1(g0, |g| -g),
-            Unary::RDivScalar(_) => map3(&g, &x, &y, |g, x, y| -g * y / x),
-            Unary::PowScalar(c) => map2(
-                &g,
-                &x,
-                |g, x| {
-                    if c == z {
-                        z
-                    } else {
-                        g * c * x.powf(c - one)
-                    }
-                },
-            ),
-            Unary::ScalarPow(c) => map2(&g, &y, |g, y| g * y * c.ln()),
-            Unary::Clamp(lo, hi) => map2(&g, &x, |g, x| if x >= lo && x <= hi { g } else { z }),
-        };
-        Ok(vec![Some(gx)])
+            Unary::Square => g.map2(&x, |g, x| two * g * x),
+            Unary::Recip => g.map2(&y, |g, y| -g * y * y),
+            Unary::AddScalar(_) => g.into_owned(),
+            Unary::MulScalar(c) => g.map1(|g| g * c),
+            Unary::RSubScalar(_) => g.map1(|g| -g),
+            Unary::RDivScalar(_) => g.map3(&x, &y, |g, x, y| -g * y / x),
+            Unary::PowScalar(c) => {
+                g.map2(&x, |g, x| if c == z { z } else { g * c * x.powf(c - one) })
+            }
+            Unary::ScalarPow(c) => g.map2(&y, |g, y| g * y * c.ln()),
+            Unary::Clamp(lo, hi) => g.map2(&x, |g, x| if x >= lo && x <= hi { g } else { z }),
+        }
     }
 }
 
@@ -298,42 +306,85 @@ impl<T: Real> Op<T> for BinaryOp {
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
-        let (a, b) = (ctx.inputs[0], ctx.inputs[1]);
-        let g = ctx.grad_outputs[0];
-        let shape = g.shape();
+        let g = GradArg::Borrowed(ctx.grad_outputs[0]);
+        Ok(self.grads(g, ctx.inputs, ctx.needs_grad))
+    }
+
+    fn backward_owned(
+        &self,
+        inputs: &[&Tensor<T>],
+        _outputs: &[&Tensor<T>],
+        needs_grad: &[bool],
+        grad_output: Tensor<T>,
+    ) -> Result<Vec<Option<Tensor<T>>>> {
+        Ok(self.grads(GradArg::Owned(grad_output), inputs, needs_grad))
+    }
+}
+
+impl BinaryOp {
+    /// The inputs' gradients from the output's gradient `g`; the last input that needs one
+    /// gets `g`'s buffer when it is owned.
+    fn grads<T: Real>(
+        &self,
+        g: GradArg<'_, T>,
+        inputs: &[&Tensor<T>],
+        needs_grad: &[bool],
+    ) -> Vec<Option<Tensor<T>>> {
+        let (a, b) = (inputs[0], inputs[1]);
+        let dim = g.get().raw_dim();
+        let shape = dim.slice();
         let (av, bv) = (bview(a, shape), bview(b, shape));
-        let gv = g.view();
         let (z, one, half) = (T::zero(), T::one(), T::from_f64c(0.5));
+        let last = (0..2).rev().find(|&k| needs_grad[k]);
+        let mut g = Some(g);
         let mut out = vec![None, None];
         for (k, slot) in out.iter_mut().enumerate() {
-            if !ctx.needs_grad[k] {
+            if !needs_grad[k] {
                 continue;
             }
+            let held = g.as_ref().expect("taken only for the last input");
+            let gk = if Some(k) == last {
+                g.take().expect("taken once")
+            } else {
+                held.borrowed()
+            };
             let full: Tensor<T> = match (self.0, k) {
-                (Binary::Add, _) => g.clone(),
-                (Binary::Sub, 0) => g.clone(),
-                (Binary::Sub, _) => map1(g, |v| -v),
-                (Binary::Mul, 0) => map2(&gv, &bv, |g, b| g * b),
-                (Binary::Mul, _) => map2(&gv, &av, |g, a| g * a),
-                (Binary::Div, 0) => map2(&gv, &bv, |g, b| g / b),
-                (Binary::Div, _) => map3(&gv, &av, &bv, |g, a, b| -g * a / (b * b)),
-                (Binary::Pow, 0) => map3(&gv, &av, &bv, |g, a, b| {
-                    if b == z {
-                        z
-                    } else {
-                        g * b * a.powf(b - one)
-                    }
-                }),
-                (Binary::Pow, _) => map3(&gv, &av, &bv, |g, a, b| {
-                    if a == z {
-                        z
-                    } else {
-                        g * a.powf(b) * a.ln()
-                    }
-                }),
+                (Binary::Add, _) => gk.into_owned(),
+                (Binary::Sub, 0) => gk.into_owned(),
+                (Binary::Sub, _) => gk.map1(|v| -v),
+                (Binary::Mul, 0) => gk.map2(&bv, |g, b| g * b),
+                (Binary::Mul, _) => gk.map2(&av, |g, a| g * a),
+                (Binary::Div, 0) => gk.map2(&bv, |g, b| g / b),
+                (Binary::Div, _) => gk.map3(&av, &bv, |g, a, b| -g * a / (b * b)),
+                (Binary::Pow, 0) => {
+                    gk.map3(
+                        &av,
+                        &bv,
+                        |g, a, b| {
+                            if b == z {
+                                z
+                            } else {
+                                g * b * a.powf(b - one)
+                            }
+                        },
+                    )
+                }
+                (Binary::Pow, _) => {
+                    gk.map3(
+                        &av,
+                        &bv,
+                        |g, a, b| {
+                            if a == z {
+                                z
+                            } else {
+                                g * a.powf(b) * a.ln()
+                            }
+                        },
+                    )
+                }
                 (Binary::Min | Binary::Max, _) => {
                     let want_less = (self.0 == Binary::Min) == (k == 0);
-                    map3(&gv, &av, &bv, |g, a, b| {
+                    gk.map3(&av, &bv, |g, a, b| {
                         if a == b {
                             g * half
                         } else if (a < b) == want_less {
@@ -344,10 +395,51 @@ impl<T: Real> Op<T> for BinaryOp {
                     })
                 }
             };
-            *slot = Some(sum_to_shape(full, ctx.inputs[k].shape()));
+            *slot = Some(sum_to_shape(full, inputs[k].shape()));
         }
-        Ok(out)
+        out
     }
+}
+
+/// `x * x` for one variable used on both sides: its gradient `2 g x` is one tensor, computed
+/// as `(g x) + (g x)`, the sum [`BinaryOp`] would accumulate from its two inputs, instead of
+/// two (a pass over the gradient and one allocation fewer).
+pub struct MulSelfOp;
+
+impl<T: Real> Op<T> for MulSelfOp {
+    fn name(&self) -> &'static str {
+        "mul"
+    }
+
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+        let x = inputs[0].view();
+        Ok(vec![map2(&x, &x, |x, y| x * y)])
+    }
+
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+        let g = GradArg::Borrowed(ctx.grad_outputs[0]);
+        Ok(vec![
+            ctx.needs_grad[0].then(|| mul_self_grad(g, ctx.inputs[0]))
+        ])
+    }
+
+    fn backward_owned(
+        &self,
+        inputs: &[&Tensor<T>],
+        _outputs: &[&Tensor<T>],
+        needs_grad: &[bool],
+        grad_output: Tensor<T>,
+    ) -> Result<Vec<Option<Tensor<T>>>> {
+        let g = GradArg::Owned(grad_output);
+        Ok(vec![needs_grad[0].then(|| mul_self_grad(g, inputs[0]))])
+    }
+}
+
+fn mul_self_grad<T: Real>(g: GradArg<'_, T>, x: &Tensor<T>) -> Tensor<T> {
+    g.map2(&x.view(), |g, x| {
+        let t = g * x;
+        t + t
+    })
 }
 
 /// `where(mask, a, b)`: `a` where the mask is true, `b` elsewhere; mask, a and b broadcast.
@@ -396,5 +488,117 @@ impl<T: Real> Op<T> for WhereOp {
             }
         }
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+    use crate::Tape;
+
+    fn bits(t: &Tensor<f32>) -> Vec<u32> {
+        t.iter().map(|v| v.to_bits()).collect()
+    }
+
+    /// The in-place backward (owned gradient) gives the bits of the allocating one, on
+    /// parallel-sized and small tensors, with values outside the fast kernels' range.
+    #[test]
+    fn owned_backward_matches_borrowed_backward() {
+        let mut r = Rng::new(7);
+        for n in [100_003usize, 37] {
+            let mut x: Tensor<f32> = r.uniform_tensor(&[n], -3.0, 3.0);
+            x[[1]] = 1e5; // outside the vectorised sin/cos range
+            x[[2]] = 0.0;
+            let x = x.mapv(|v| if v == 0.0 { v } else { v + 0.01 });
+            let g: Tensor<f32> = r.normal_tensor(&[n]);
+            let b: Tensor<f32> = r.uniform_tensor(&[n], 0.5, 2.0);
+            let kinds = [
+                Unary::Neg,
+                Unary::Exp,
+                Unary::Log,
+                Unary::Sqrt,
+                Unary::Sin,
+                Unary::Cos,
+                Unary::Tanh,
+                Unary::Sigmoid,
+                Unary::Relu,
+                Unary::Abs,
+                Unary::Square,
+                Unary::Recip,
+                Unary::AddScalar(0.5),
+                Unary::MulScalar(1.01),
+                Unary::RSubScalar(2.0),
+                Unary::RDivScalar(3.0),
+                Unary::PowScalar(1.5),
+                Unary::ScalarPow(1.5),
+                Unary::Clamp(-1.0, 1.0),
+            ];
+            for k in kinds {
+                let mut op = UnaryOp(k);
+                let y = op.forward(&[&x]).unwrap().remove(0);
+                let ctx = BackwardCtx {
+                    inputs: &[&x],
+                    outputs: &[&y],
+                    grad_outputs: &[&g],
+                    needs_grad: &[true],
+                };
+                let want = op.backward(&ctx).unwrap().remove(0).unwrap();
+                let got = op
+                    .backward_owned(&[&x], &[&y], &[true], g.clone())
+                    .unwrap()
+                    .remove(0)
+                    .unwrap();
+                assert_eq!(bits(&got), bits(&want), "{}", k.name());
+            }
+            for k in [
+                Binary::Add,
+                Binary::Sub,
+                Binary::Mul,
+                Binary::Div,
+                Binary::Pow,
+                Binary::Min,
+                Binary::Max,
+            ] {
+                let a = x.mapv(f32::abs);
+                let mut op = BinaryOp(k);
+                let y = Op::<f32>::forward(&mut op, &[&a, &b]).unwrap().remove(0);
+                for needs in [[true, true], [true, false], [false, true]] {
+                    let ctx = BackwardCtx {
+                        inputs: &[&a, &b],
+                        outputs: &[&y],
+                        grad_outputs: &[&g],
+                        needs_grad: &needs,
+                    };
+                    let want = op.backward(&ctx).unwrap();
+                    let got = op
+                        .backward_owned(&[&a, &b], &[&y], &needs, g.clone())
+                        .unwrap();
+                    for (w, o) in want.iter().zip(&got) {
+                        assert_eq!(w.as_ref().map(bits), o.as_ref().map(bits), "{}", k.name());
+                    }
+                }
+            }
+        }
+    }
+
+    /// `x * x` (one gradient `(g x) + (g x)`) gives the bits of the product of two inputs,
+    /// whose two gradients the tape adds.
+    #[test]
+    fn mul_self_matches_binary_mul() {
+        let x0: Tensor<f32> = Rng::new(3).normal_tensor(&[70_001]);
+        let grad = |same: bool| {
+            let tape = Tape::<f32>::new();
+            let x = tape.leaf(x0.clone());
+            let h = x.sin() * 1.3;
+            let y = if same {
+                h * h
+            } else {
+                tape.apply(BinaryOp(Binary::Mul), &[h, h])
+            };
+            let g = tape.backward(y.tanh().sum()).unwrap();
+            (bits(&y.value().unwrap()), bits(g.get(x).unwrap()))
+        };
+        assert_eq!(grad(true), grad(false));
     }
 }
