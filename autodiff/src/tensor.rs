@@ -349,12 +349,12 @@ impl<T: Real> GradArg<'_, T> {
         }
     }
 
-    /// [`map2`]'s fast variant: `fast(g, x)`, and `exact(g, x)` where `ok(g, x)` fails (the
+    /// [`map2`]'s fast variant: `fast(g, x)`, and `exact(g, x)` where `ok(x)` fails (the
     /// vectorised `f32` transcendentals, see [`map2_fast`]).
     pub fn map2_fast<F, P, E>(self, x: &ArrayViewD<T>, fast: F, ok: P, exact: E) -> Tensor<T>
     where
         F: Fn(T, T) -> T + Sync + Send,
-        P: Fn(T, T) -> bool + Sync + Send,
+        P: Fn(T) -> bool + Sync + Send,
         E: Fn(T, T) -> T + Sync + Send,
     {
         match (x.as_slice(), T::FAST_MATH, self.inplace(x.shape())) {
@@ -362,19 +362,21 @@ impl<T: Real> GradArg<'_, T> {
                 let s = g.as_slice_mut().expect("standard layout");
                 par_update(s, |o, at| {
                     let a = &a[at..at + o.len()];
-                    // `ok` is checked before `o` (the gradient) is overwritten.
-                    if o.iter().zip(a).fold(true, |acc, (&u, &v)| acc & ok(u, v)) {
-                        upd2(o, a, &fast);
-                    } else {
+                    // One pass: the fast kernel where `ok`, the gradient kept elsewhere; then
+                    // (the chunk now in cache) `exact` on the gradient kept, if any.
+                    upd2(o, a, &|g, x| if ok(x) { fast(g, x) } else { g });
+                    if !a.iter().fold(true, |acc, &v| acc & ok(v)) {
                         for (o, &v) in o.iter_mut().zip(a) {
-                            *o = if ok(*o, v) { fast(*o, v) } else { exact(*o, v) };
+                            if !ok(v) {
+                                *o = exact(*o, v);
+                            }
                         }
                     }
                 });
                 g
             }
-            (_, _, Ok(g)) => map2_fast(&g.view(), x, fast, ok, exact),
-            (_, _, Err(g)) => map2_fast(&g.get().view(), x, fast, ok, exact),
+            (_, _, Ok(g)) => map2_fast(&g.view(), x, fast, |_, v| ok(v), exact),
+            (_, _, Err(g)) => map2_fast(&g.get().view(), x, fast, |_, v| ok(v), exact),
         }
     }
 
@@ -397,6 +399,17 @@ impl<T: Real> GradArg<'_, T> {
             (_, _, _, Err(g)) => map3(&g.get().view(), x, y, f),
         }
     }
+}
+
+/// A tensor of `shape` filled with `v` (in parallel for large tensors).
+pub fn full<T: Real>(shape: &[usize], v: T) -> Tensor<T> {
+    let n = shape.iter().product();
+    let data = build(n, |o, _| {
+        for o in o {
+            o.write(v);
+        }
+    });
+    from_parts(shape, data)
 }
 
 /// `acc += g` elementwise (same shape), in place and in parallel for large tensors.

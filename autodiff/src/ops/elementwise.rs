@@ -183,13 +183,13 @@ impl<T: Real> UnaryOp<T> {
             Unary::Sin => g.map2_fast(
                 &x,
                 |g, x| g * x.k_cos(),
-                |_, x| x.k_trig_ok(),
+                |x| x.k_trig_ok(),
                 |g, x| g * x.cos(),
             ),
             Unary::Cos => g.map2_fast(
                 &x,
                 |g, x| -g * x.k_sin(),
-                |_, x| x.k_trig_ok(),
+                |x| x.k_trig_ok(),
                 |g, x| -g * x.sin(),
             ),
             Unary::Tanh => g.map2(&y, |g, y| g * (one - y * y)),

@@ -98,48 +98,10 @@ fn dot_slice<T: Real>(a: &[T], b: &[T]) -> T {
     ra.iter().zip(rb).fold(acc[0], |s, (&x, &y)| s + x * y)
 }
 
-/// `ys[r] = rows[r] . x` for consecutive rows of length `x.len()`: four rows at a time, each
-/// summed exactly as [`dot_slice`] does (so the same bits), interleaved so that the four
-/// accumulator chains overlap.
+/// `ys[r] = rows[r] . x` for consecutive rows of length `x.len()`.
 #[inline(always)]
 fn gemv_rows<T: Real>(rows: &[T], x: &[T], ys: &mut [T]) {
-    let k = x.len();
-    let n16 = k / 16 * 16;
-    let mut quads = rows.chunks_exact(4 * k);
-    let mut yq = ys.chunks_exact_mut(4);
-    for (q, y4) in (&mut quads).zip(&mut yq) {
-        let r: [&[T]; 4] = [&q[..k], &q[k..2 * k], &q[2 * k..3 * k], &q[3 * k..]];
-        let mut acc = [[T::zero(); 16]; 4];
-        let mut c = 0;
-        while c < n16 {
-            let xc = &x[c..c + 16];
-            for (a, row) in acc.iter_mut().zip(&r) {
-                let rc = &row[c..c + 16];
-                for j in 0..16 {
-                    a[j] += rc[j] * xc[j];
-                }
-            }
-            c += 16;
-        }
-        for ((yv, a), row) in y4.iter_mut().zip(&mut acc).zip(&r) {
-            let mut w = 16;
-            while w > 1 {
-                w /= 2;
-                for j in 0..w {
-                    a[j] += a[j + w];
-                }
-            }
-            *yv = row[n16..]
-                .iter()
-                .zip(&x[n16..])
-                .fold(a[0], |s, (&u, &v)| s + u * v);
-        }
-    }
-    for (yv, row) in yq
-        .into_remainder()
-        .iter_mut()
-        .zip(quads.remainder().chunks_exact(k))
-    {
+    for (yv, row) in ys.iter_mut().zip(rows.chunks_exact(x.len())) {
         *yv = dot_slice(row, x);
     }
 }
@@ -368,7 +330,7 @@ mod tests {
     use super::*;
     use crate::rng::Rng;
 
-    /// The four-row kernel sums each row as `dot_slice` does.
+    /// Each row is summed as `dot_slice` does, whatever the block and thread split.
     #[test]
     fn gemv_rows_match_dot_slice() {
         let mut r = Rng::new(11);

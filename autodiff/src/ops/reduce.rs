@@ -5,7 +5,7 @@ use ndarray::{ArrayD, Axis, IxDyn, Zip};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{scalar, sum_all_det, sum_axis_det, Tensor};
+use crate::tensor::{full, scalar, sum_all_det, sum_axis_det, Tensor};
 use crate::Real;
 
 /// Validates reduction axes: in range, no repeats; returns them sorted.
@@ -143,7 +143,7 @@ impl<T: Real> Op<T> for SumOp {
         if g.len() == 1 {
             // A full reduction: the gradient is one value everywhere.
             let v = *g.iter().next().expect("one element") * scale;
-            return Ok(vec![Some(ArrayD::from_elem(IxDyn(shape), v))]);
+            return Ok(vec![Some(full(shape, v))]);
         }
         let gb = g.broadcast(IxDyn(shape)).expect("keepdim broadcasts");
         Ok(vec![Some(gb.mapv(|v| v * scale))])
