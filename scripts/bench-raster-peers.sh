@@ -11,7 +11,7 @@
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 PEERS=${1:-$ROOT/../shared/peers}
-OUT=${OUT:-$ROOT/target/bench-peers}
+OUT=${OUT:-${CARGO_TARGET_DIR:-$ROOT/target}/bench-peers}
 mkdir -p "$OUT"
 export PEER_SCENE_DIR=${PEER_SCENE_DIR:-$OUT/scenes} PEER_RESULTS_DIR=$OUT
 rm -f "$OUT/deodr.jsonl"

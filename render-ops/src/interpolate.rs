@@ -10,7 +10,7 @@ use rayon::prelude::*;
 
 use crate::error::RenderError;
 use crate::raster::Fragments;
-use crate::rasterize::Rasterized;
+use crate::rasterize::{as_rows, Rasterized};
 
 struct InterpolateOp<T: Real> {
     fragments: Arc<Fragments<T>>,
@@ -43,13 +43,19 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
         out.par_chunks_mut(ROWS_PER_TASK * c.max(1))
             .enumerate()
             .for_each(|(blk, chunk)| {
-                for (r, o) in chunk.chunks_mut(c.max(1)).enumerate() {
-                    let i = blk * ROWS_PER_TASK + r;
-                    let f = self.faces[self.fragments.face[i] as usize];
-                    for ch in 0..c {
-                        o[ch] = b[3 * i] * a[f[0] as usize * c + ch]
-                            + b[3 * i + 1] * a[f[1] as usize * c + ch]
-                            + b[3 * i + 2] * a[f[2] as usize * c + ch];
+                // `chunk` is non-empty, so c >= 1.
+                let i0 = blk * ROWS_PER_TASK;
+                let rows = chunk
+                    .chunks_exact_mut(c)
+                    .zip(as_rows(b)[i0..].iter())
+                    .zip(&self.fragments.face[i0..]);
+                for ((orow, bi), &fi) in rows {
+                    let f = self.faces[fi as usize];
+                    let a0 = &a[f[0] as usize * c..][..c];
+                    let a1 = &a[f[1] as usize * c..][..c];
+                    let a2 = &a[f[2] as usize * c..][..c];
+                    for (((o, &x0), &x1), &x2) in orow.iter_mut().zip(a0).zip(a1).zip(a2) {
+                        *o = bi[0] * x0 + bi[1] * x1 + bi[2] * x2;
                     }
                 }
             });

@@ -55,8 +55,7 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
         let f = &self.fragments;
         let n = f.face.len();
         let bary =
-            ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.iter().flatten().copied().collect())
-                .expect("n x 3");
+            ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.as_flattened().to_vec()).expect("n x 3");
         let depth = ArrayD::from_shape_vec(IxDyn(&[n]), f.depth.clone()).expect("n");
         let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), f.view_depth.clone()).expect("n");
         Ok(vec![bary, depth, vdepth])

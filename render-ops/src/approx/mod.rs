@@ -277,16 +277,25 @@ pub(crate) fn interior_grad<T: Real>(
     settings: &ApproxSettings,
 ) -> autodiff::Result<Vec<[T; 4]>> {
     let c = attrs.len() / clip.shape()[0].max(1);
-    let gbary: Vec<[T; 3]> = (0..frags.len())
-        .into_par_iter()
-        .with_min_len(1024)
-        .map(|i| {
-            let p = frags.pixel_of(i);
-            let f = faces[frags.face[i] as usize];
-            let gp = &g[p * (c + 1)..p * (c + 1) + c];
-            f.map(|vi| (0..c).map(|ch| gp[ch] * attrs[vi as usize * c + ch]).sum())
-        })
-        .collect();
+    const CHUNK: usize = 1024;
+    let mut gbary = vec![[T::zero(); 3]; frags.len()];
+    gbary
+        .par_chunks_mut(CHUNK)
+        .enumerate()
+        .for_each(|(ci, out)| {
+            // Fragments are in pixel order: one binary search per chunk, then a walk.
+            let i0 = ci * CHUNK;
+            let mut p = frags.pixel_of(i0);
+            for (j, o) in out.iter_mut().enumerate() {
+                let i = i0 + j;
+                while frags.offsets[p + 1] as usize <= i {
+                    p += 1;
+                }
+                let f = faces[frags.face[i] as usize];
+                let gp = &g[p * (c + 1)..p * (c + 1) + c];
+                *o = f.map(|vi| (0..c).map(|ch| gp[ch] * attrs[vi as usize * c + ch]).sum());
+            }
+        });
     let err = |e: String| AutodiffError::Op { op, detail: e };
     let rows = clip_rows(clip).map_err(|e| err(e.to_string()))?;
     crate::raster::rasterize_backward(&rows, faces, frags, &gbary, None, None, &settings.raster())

@@ -199,13 +199,15 @@ impl<T: Real> Fragments<T> {
 }
 
 /// The fragments of one tile, packed in tile-local row-major pixel order (nearest first within a
-/// pixel) as (setup index, depth), before their values are computed (during assembly, straight
-/// into the final arrays).
+/// pixel), with their values computed by the tile pass while the faces' setups are in cache;
+/// assembly copies them, row segment by row segment, into the final arrays.
 pub(crate) struct TileOut<T> {
-    /// Setups (with face index) of the faces that own fragments here.
-    pub setups: Vec<(Setup, u32)>,
-    pub idx: Vec<u32>,
+    pub face: Vec<u32>,
+    pub bary: Vec<[T; 3]>,
     pub depth: Vec<T>,
+    pub view_depth: Vec<T>,
+    pub dx: Vec<[T; 3]>,
+    pub dy: Vec<[T; 3]>,
     /// Fragment count per local pixel (`local_row * TILE_SIZE + local_col`); empty if none.
     pub counts: Vec<u16>,
     /// Number of fragments in each local row.
@@ -215,21 +217,26 @@ pub(crate) struct TileOut<T> {
 impl<T: Real> TileOut<T> {
     pub fn empty() -> Self {
         Self {
-            setups: Vec::new(),
-            idx: Vec::new(),
+            face: Vec::new(),
+            bary: Vec::new(),
             depth: Vec::new(),
+            view_depth: Vec::new(),
+            dx: Vec::new(),
+            dy: Vec::new(),
             counts: Vec::new(),
             row_len: [0; TILE_SIZE],
         }
     }
 
-    /// Packs a dense K-buffer (`k` slots per local pixel, `+inf` depth when empty).
+    /// Packs a dense K-buffer (`k` slots per local pixel of indices into `setups`, `+inf` depth
+    /// when empty) and computes each fragment's values ([`Setup::values`]).
     pub fn pack(
         depth: &[f64],
         idx: &[u32],
-        setups: Vec<(Setup, u32)>,
+        setups: &[(Setup, u32)],
         rect: &Rect,
         k: usize,
+        persp: bool,
     ) -> Self {
         let n = (rect.c1 - rect.c0) as usize + 1;
         let rows = (rect.r1 - rect.r0) as usize + 1;
@@ -243,29 +250,41 @@ impl<T: Real> TileOut<T> {
         if total == 0 {
             return out;
         }
-        out.setups = setups;
-        out.idx.reserve_exact(total);
+        out.face.reserve_exact(total);
+        out.bary.reserve_exact(total);
         out.depth.reserve_exact(total);
+        out.view_depth.reserve_exact(total);
+        out.dx.reserve_exact(total);
+        out.dy.reserve_exact(total);
         out.counts = vec![0; TILE_SIZE * TILE_SIZE];
         for lr in 0..rows {
             let p = lr * TILE_SIZE;
             let slots = p * k..(p + n) * k;
-            let before = out.idx.len();
-            for ((cnt, dk), ik) in out.counts[p..p + n]
+            let before = out.face.len();
+            let rf = (rect.r0 as usize + lr) as f64;
+            for (j, ((cnt, dk), ik)) in out.counts[p..p + n]
                 .iter_mut()
                 .zip(depth[slots.clone()].chunks_exact(k))
                 .zip(idx[slots].chunks_exact(k))
+                .enumerate()
             {
+                let col = (rect.c0 as usize + j) as f64;
                 for (&d, &i) in dk.iter().zip(ik) {
                     if d > 1.0 {
                         break;
                     }
-                    out.idx.push(i);
+                    let (st, face) = &setups[i as usize];
+                    let (bary, vd, dx, dy) = st.values::<T>(col, rf, persp);
+                    out.face.push(*face);
+                    out.bary.push(bary);
                     out.depth.push(T::from_f64c(d));
+                    out.view_depth.push(vd);
+                    out.dx.push(dx);
+                    out.dy.push(dy);
                     *cnt += 1;
                 }
             }
-            out.row_len[lr] = (out.idx.len() - before) as u32;
+            out.row_len[lr] = (out.face.len() - before) as u32;
         }
         out
     }
@@ -294,8 +313,8 @@ fn split_sizes<'a, X>(mut v: &'a mut [X], sizes: &[usize]) -> Vec<&'a mut [X]> {
     out
 }
 
-/// Assembles the tiles' fragments into the packed pixel-order layout, computing their values,
-/// in parallel over image rows (each a contiguous run of pixels and fragments). The result does
+/// Assembles the tiles' fragments into the packed pixel-order layout, in parallel over image
+/// rows (each a contiguous run of pixels and fragments). The result does
 /// not depend on the thread count.
 pub(crate) fn assemble<T: Real>(
     tiles: Vec<TileOut<T>>,
@@ -361,10 +380,8 @@ pub(crate) fn assemble<T: Real>(
             },
         )
         .collect();
-    let persp = s.perspective_correct;
     rows.into_par_iter().with_min_len(4).for_each(|ro| {
         let (ty, lr) = (ro.row / TILE_SIZE, ro.row % TILE_SIZE);
-        let rf = ro.row as f64;
         let mut pos = 0usize;
         for (tx, tile) in tiles[ty * tx_n..(ty + 1) * tx_n].iter().enumerate() {
             let c0 = tx * TILE_SIZE;
@@ -380,31 +397,16 @@ pub(crate) fn assemble<T: Real>(
                 .sum::<usize>();
             let n_row = tile.row_len[lr] as usize;
             let (src, dst) = (i0..i0 + n_row, pos..pos + n_row);
-            // One iterator over this segment's inputs and outputs: no per-fragment bounds checks.
-            let mut it = tile.idx[src.clone()]
-                .iter()
-                .zip(&tile.depth[src])
-                .zip(ro.face[dst.clone()].iter_mut())
-                .zip(ro.bary[dst.clone()].iter_mut())
-                .zip(ro.depth[dst.clone()].iter_mut())
-                .zip(ro.view_depth[dst.clone()].iter_mut())
-                .zip(ro.dx[dst.clone()].iter_mut())
-                .zip(ro.dy[dst].iter_mut());
+            ro.face[dst.clone()].copy_from_slice(&tile.face[src.clone()]);
+            ro.bary[dst.clone()].copy_from_slice(&tile.bary[src.clone()]);
+            ro.depth[dst.clone()].copy_from_slice(&tile.depth[src.clone()]);
+            ro.view_depth[dst.clone()].copy_from_slice(&tile.view_depth[src.clone()]);
+            ro.dx[dst.clone()].copy_from_slice(&tile.dx[src.clone()]);
+            ro.dy[dst].copy_from_slice(&tile.dy[src]);
             let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + (c1 - c0)];
-            for (j, (o, &n)) in offs.iter_mut().zip(counts).enumerate() {
+            for (o, &n) in offs.iter_mut().zip(counts) {
                 *o = (ro.base + pos) as u32;
                 pos += n as usize;
-                let col = (c0 + j) as f64;
-                for (((((((idx, d), of), ob), od), ov), ox), oy) in it.by_ref().take(n as usize) {
-                    let (st, face) = &tile.setups[*idx as usize];
-                    let (bary, vd, dx, dy) = st.values::<T>(col, rf, persp);
-                    *of = *face;
-                    *ob = bary;
-                    *od = *d;
-                    *ov = vd;
-                    *ox = dx;
-                    *oy = dy;
-                }
             }
         }
     });

@@ -12,10 +12,12 @@ use super::{validate_inputs, RasterError, RasterSettings, TILE_SIZE};
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
 /// (`local_row * TILE_SIZE + local_col`) of NDC depth (`+inf` when empty) and index into the
-/// tile's setups, nearest first.
+/// tile's setups, nearest first; and the setups (with face index) of the tile's faces that
+/// own fragments.
 struct Scratch {
     depth: Vec<f64>,
     idx: Vec<u32>,
+    setups: Vec<(Setup, u32)>,
 }
 
 impl Scratch {
@@ -24,6 +26,7 @@ impl Scratch {
         Self {
             depth: vec![f64::INFINITY; n],
             idx: vec![0; n],
+            setups: Vec::new(),
         }
     }
 }
@@ -95,7 +98,8 @@ fn raster_tile<T: Real>(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileOut<T>
         return TileOut::empty();
     }
     sc.depth.fill(f64::INFINITY);
-    let mut setups = Vec::new();
+    let mut setups = std::mem::take(&mut sc.setups);
+    setups.clear();
     for f in faces {
         let r = ctx.bins.rects[f as usize].intersect(&rect);
         if r.is_empty() {
@@ -114,7 +118,9 @@ fn raster_tile<T: Real>(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileOut<T>
             setups.push((st, f));
         }
     }
-    TileOut::pack(&sc.depth, &sc.idx, setups, &rect, k)
+    let out = TileOut::pack(&sc.depth, &sc.idx, &setups, &rect, k, s.perspective_correct);
+    sc.setups = setups;
+    out
 }
 
 /// Tests the pixels of `r` (inside tile `rect`) against one face and inserts its fragments into
@@ -347,6 +353,8 @@ pub fn rasterize_backward<T: Real>(
         buf.par_chunks_mut(CHUNK).enumerate().for_each(|(ci, ch)| {
             let i0 = start + ci * CHUNK;
             let mut p = frags.pixel_of(i0);
+            // Consecutive fragments (along a row) mostly share their face: keep its setup.
+            let mut cur: Option<(u32, FaceVjp)> = None;
             for (j, out) in ch.iter_mut().enumerate() {
                 let i = i0 + j;
                 while frags.offsets[p + 1] as usize <= i {
@@ -357,12 +365,19 @@ pub fn rasterize_backward<T: Real>(
                     2.0 * (col as f64 + 0.5) / wf - 1.0,
                     1.0 - 2.0 * (row as f64 + 0.5) / hf,
                 ];
-                let f = faces[frags.face[i] as usize];
-                let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
+                let fi = frags.face[i];
+                let fv = match &cur {
+                    Some((cf, fv)) if *cf == fi => fv,
+                    _ => {
+                        let f = faces[fi as usize];
+                        let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
+                        &cur.insert((fi, FaceVjp::new(&v))).1
+                    }
+                };
                 let gd = grad_depth.map_or(0.0, |g| g[i].to_f64c());
                 let gw = grad_view_depth.map_or(0.0, |g| g[i].to_f64c());
                 let gb = grad_bary[i].map(|x| x.to_f64c());
-                *out = fragment_vjp(&v, px, gb, gd, gw, s.perspective_correct);
+                *out = fv.vjp(px, gb, gd, gw, s.perspective_correct);
             }
         });
         // Fixed-order reduction.
@@ -394,28 +409,52 @@ fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
-/// `dL/d(clip of the face's three vertices)` of one fragment at NDC pixel `px`.
-///
-/// With `M = [v0 v1 v2]` over `(x, y, w)`, `u = M^-1 p`, `W = 1 / sum u` (view depth),
-/// `b = W u`, `Z = b . z`, `D = Z / W` (NDC depth). For `L(b, W, D)`:
-/// `dL/dM = b_m M^-T k` per column with `k = (g_b . b + g_W W) 1 - g_b` (after folding the depth
-/// gradient into `g_b += g_D z / W`, `g_W -= g_D D / W`), and `dL/dz_m = g_D b_m / W`. For
-/// screen-space barycentrics `l_i = u_i w_i`: `dL/dv_m -= u_m M^-T (g_l * w)`, `dL/dw_m += g_l,m u_m`.
+/// The per-face part of [`FaceVjp::vjp`]: the face's clip vertices, the cofactor columns
+/// `c_i = v_{i+1} x v_{i+2}` over `(x, y, w)` and `det M`.
+struct FaceVjp {
+    v: [[f64; 4]; 3],
+    c: [[f64; 3]; 3],
+    det: f64,
+}
+
+impl FaceVjp {
+    fn new(v: &[[f64; 4]; 3]) -> Self {
+        let col = |i: usize| [v[i][0], v[i][1], v[i][3]];
+        let c = [
+            cross(col(1), col(2)),
+            cross(col(2), col(0)),
+            cross(col(0), col(1)),
+        ];
+        let det = dot(col(0), c[0]);
+        FaceVjp { v: *v, c, det }
+    }
+
+    /// `dL/d(clip of the face's three vertices)` of one fragment at NDC pixel `px`.
+    ///
+    /// With `M = [v0 v1 v2]` over `(x, y, w)`, `u = M^-1 p`, `W = 1 / sum u` (view depth),
+    /// `b = W u`, `Z = b . z`, `D = Z / W` (NDC depth). For `L(b, W, D)`:
+    /// `dL/dM = b_m M^-T k` per column with `k = (g_b . b + g_W W) 1 - g_b` (after folding the
+    /// depth gradient into `g_b += g_D z / W`, `g_W -= g_D D / W`), and `dL/dz_m = g_D b_m / W`.
+    /// For screen-space barycentrics `l_i = u_i w_i`: `dL/dv_m -= u_m M^-T (g_l * w)`,
+    /// `dL/dw_m += g_l,m u_m`.
+    fn vjp(&self, px: [f64; 2], gb: [f64; 3], gd: f64, gw: f64, persp: bool) -> [[f64; 4]; 3] {
+        fragment_vjp(&self.v, &self.c, self.det, px, gb, gd, gw, persp)
+    }
+}
+
+/// The body of [`FaceVjp::vjp`].
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn fragment_vjp(
     v: &[[f64; 4]; 3],
+    c: &[[f64; 3]; 3],
+    det: f64,
     px: [f64; 2],
     gb: [f64; 3],
     gd: f64,
     gw: f64,
     persp: bool,
 ) -> [[f64; 4]; 3] {
-    let col = |i: usize| [v[i][0], v[i][1], v[i][3]];
-    let c = [
-        cross(col(1), col(2)),
-        cross(col(2), col(0)),
-        cross(col(0), col(1)),
-    ];
-    let det = dot(col(0), c[0]);
     let mut out = [[0.0; 4]; 3];
     if det == 0.0 || !det.is_finite() {
         return out;
