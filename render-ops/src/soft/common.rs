@@ -4,6 +4,7 @@
 //! the chain from NDC to clip coordinates.
 
 use autodiff::{Real, Tensor, Var};
+use rayon::prelude::*;
 
 use crate::raster::{RasterError, MAX_FRAGMENT_SLOTS};
 
@@ -54,6 +55,12 @@ pub(crate) struct TileBins {
     pub tiles: Vec<Vec<u32>>,
     /// Pixel box (c0, c1, r0, r1) per face, inclusive; c0 > c1 when skipped.
     pub rects: Vec<[i64; 4]>,
+    /// Screen geometry per face (meaningful for faces that are not skipped).
+    pub geoms: Vec<FaceGeom>,
+    /// NDC x of every pixel column's centre.
+    pub px: Vec<f64>,
+    /// NDC y of every pixel row's centre.
+    pub py: Vec<f64>,
 }
 
 impl TileBins {
@@ -72,31 +79,60 @@ impl TileBins {
         let tiles_x = width.div_ceil(TILE);
         let tiles_y = height.div_ceil(TILE);
         let mut tiles = vec![Vec::new(); tiles_x * tiles_y];
-        let mut rects = vec![[1, 0, 1, 0]; faces.len()];
-        for (fi, f) in faces.iter().enumerate() {
-            let Some(rect) = face_rect(ndc, depth, f, width, height, dmax, cull_backfaces) else {
+        // Boxes and geometry in parallel (per face, independent), binning in face order.
+        let (rects, geoms): (Vec<[i64; 4]>, Vec<FaceGeom>) = faces
+            .par_iter()
+            .with_min_len(1024)
+            .map(
+                |f| match face_rect(ndc, depth, f, width, height, dmax, cull_backfaces) {
+                    Some(rect) => (rect, FaceGeom::new(ndc, depth, f)),
+                    None => ([1, 0, 1, 0], FaceGeom::default()),
+                },
+            )
+            .unzip();
+        for (fi, rect) in rects.iter().enumerate() {
+            if rect[0] > rect[1] {
                 continue;
-            };
-            rects[fi] = rect;
+            }
             for ty in rect[2] as usize / TILE..=rect[3] as usize / TILE {
                 for tx in rect[0] as usize / TILE..=rect[1] as usize / TILE {
                     tiles[ty * tiles_x + tx].push(fi as u32);
                 }
             }
         }
+        let px = (0..width)
+            .map(|c| pixel_centre(0, c, width, height)[0])
+            .collect();
+        let py = (0..height)
+            .map(|r| pixel_centre(r, 0, width, height)[1])
+            .collect();
         Self {
             tiles_x,
             tiles,
             rects,
+            geoms,
+            px,
+            py,
         }
     }
 
-    /// Whether face `fi`'s expanded box holds pixel (row, col).
+    /// The part of face `fi`'s box inside tile `t` as (c0, c1, r0, r1), inclusive, in image
+    /// pixels; `None` when they do not overlap.
     #[inline]
-    pub fn reaches(&self, fi: usize, row: usize, col: usize) -> bool {
+    pub fn face_in_tile(
+        &self,
+        fi: usize,
+        t: usize,
+        width: usize,
+        height: usize,
+    ) -> Option<[usize; 4]> {
         let rc = self.rects[fi];
-        let (ci, ri) = (col as i64, row as i64);
-        !(ci < rc[0] || ci > rc[1] || ri < rc[2] || ri > rc[3])
+        let (tx, ty) = (t % self.tiles_x, t / self.tiles_x);
+        let c0 = (rc[0] as usize).max(tx * TILE);
+        let c1 = (rc[1] as usize).min((tx * TILE + TILE).min(width) - 1);
+        let r0 = (rc[2] as usize).max(ty * TILE);
+        let r1 = (rc[3] as usize).min((ty * TILE + TILE).min(height) - 1);
+        (rc[0] <= rc[1] && c0 <= c1 && r0 <= r1).then_some([c0, c1, r0, r1])
     }
 }
 
@@ -229,8 +265,9 @@ pub(crate) struct Closest {
     pub r: [f64; 2],
 }
 
-/// Closest point of the boundary of triangle `v` to `p` (first edge wins ties).
-#[inline]
+/// Closest point of the boundary of triangle `v` to `p` (first edge wins ties): the plain
+/// reference for [`FaceGeom`]'s tests.
+#[cfg(test)]
 pub(crate) fn closest_on_boundary(v: &[[f64; 2]; 3], p: [f64; 2]) -> Closest {
     let mut best = Closest {
         d2: f64::INFINITY,
@@ -259,6 +296,128 @@ pub(crate) fn closest_on_boundary(v: &[[f64; 2]; 3], p: [f64; 2]) -> Closest {
     best
 }
 
+/// Screen geometry of one projected face, computed once per forward so that the work per
+/// (face, pixel) pair is a few multiply-adds (SoftRas and DIB-R evaluate every face near every
+/// pixel).
+///
+/// With `n_k(p) = cross(v_{k+1} - p, v_{k+2} - p)` (twice the signed area of the sub-triangle
+/// opposite vertex `k`) and `area = sum_k n_k`, the screen-space barycentrics `w_k = n_k / area`
+/// are affine in `p`; they are evaluated about `v0` for accuracy far from the origin. The
+/// distance from `p` to the line of the edge opposite `k` is `|w_k| alt_k`; for a point inside
+/// the triangle the nearest boundary point is the foot on the nearest edge line, so the
+/// distance to the boundary is `min_k w_k alt_k`, and outside `max_k (-w_k alt_k)` is a lower
+/// bound of the distance to the triangle (it is separated by that edge's line).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct FaceGeom {
+    /// NDC vertices.
+    pub v: [[f64; 2]; 3],
+    /// `w_k(p) = bw[k][0] + bw[k][1] (p_x - v0_x) + bw[k][2] (p_y - v0_y)`.
+    pub bw: [[f64; 3]; 3],
+    /// `sum_k n_k = cross(v1 - v0, v2 - v0)`, twice the signed projected area.
+    pub area: f64,
+    /// `|area| / |v_{k+2} - v_{k+1}|`: distance to the edge line opposite `k` per unit `|w_k|`.
+    pub alt: [f64; 3],
+    /// `1 / |v_{k+1} - v_k|^2` of edge `k` (0 for a zero-length edge).
+    pub inv_ee: [f64; 3],
+    /// `1 / w_clip` of each vertex.
+    pub inv_d: [f64; 3],
+}
+
+impl FaceGeom {
+    /// Geometry of face `f` (its projected area must be non-zero and finite, as
+    /// `face_rect` ensures for the faces it keeps).
+    pub fn new(ndc: &[[f64; 2]], depth: &[f64], f: &[u32; 3]) -> Self {
+        let v = f.map(|i| ndc[i as usize]);
+        let o = v[0];
+        let rel = v.map(|q| [q[0] - o[0], q[1] - o[1]]);
+        let area = cross(rel[1], rel[2]);
+        let inv_area = 1.0 / area;
+        let mut bw = [[0.0; 3]; 3];
+        let mut alt = [0.0; 3];
+        let mut inv_ee = [0.0; 3];
+        for k in 0..3 {
+            let (a, b) = (rel[(k + 1) % 3], rel[(k + 2) % 3]);
+            // n_k(q) = cross(a, b) + q_x (a_y - b_y) + q_y (b_x - a_x), q = p - v0.
+            bw[k] = [
+                cross(a, b) * inv_area,
+                (a[1] - b[1]) * inv_area,
+                (b[0] - a[0]) * inv_area,
+            ];
+            let len = (b[0] - a[0]).hypot(b[1] - a[1]);
+            alt[k] = area.abs() / len;
+            let e = [v[(k + 1) % 3][0] - v[k][0], v[(k + 1) % 3][1] - v[k][1]];
+            let ee = e[0] * e[0] + e[1] * e[1];
+            inv_ee[k] = if ee > 0.0 && (1.0 / ee).is_finite() {
+                1.0 / ee
+            } else {
+                0.0
+            };
+        }
+        Self {
+            v,
+            bw,
+            area,
+            alt,
+            inv_ee,
+            inv_d: f.map(|i| 1.0 / depth[i as usize]),
+        }
+    }
+
+    /// Screen-space barycentrics of the point `p`.
+    #[inline(always)]
+    pub fn bary(&self, p: [f64; 2]) -> [f64; 3] {
+        let (qx, qy) = (p[0] - self.v[0][0], p[1] - self.v[0][1]);
+        self.bw.map(|b| b[0] + b[1] * qx + b[2] * qy)
+    }
+
+    /// Squared distance from an inside point with barycentrics `w` to the boundary.
+    #[inline(always)]
+    pub fn inside_d2(&self, w: &[f64; 3]) -> f64 {
+        let d = (w[0] * self.alt[0])
+            .min(w[1] * self.alt[1])
+            .min(w[2] * self.alt[2]);
+        d * d
+    }
+
+    /// A lower bound of the squared distance from an outside point with barycentrics `w` to the
+    /// triangle: the largest distance beyond one of its edge lines.
+    #[inline(always)]
+    pub fn outside_d2_bound(&self, w: &[f64; 3]) -> f64 {
+        let d = (-w[0] * self.alt[0])
+            .max(-w[1] * self.alt[1])
+            .max(-w[2] * self.alt[2]);
+        d * d
+    }
+
+    /// Closest point of the triangle's boundary to `p`, as [`closest_on_boundary`] (first edge
+    /// wins ties) with the edges' inverse squared lengths precomputed.
+    #[inline]
+    pub fn closest(&self, p: [f64; 2]) -> Closest {
+        let v = &self.v;
+        let mut best = Closest {
+            d2: f64::INFINITY,
+            ..Default::default()
+        };
+        for k in 0..3 {
+            let (a, b) = (v[k], v[(k + 1) % 3]);
+            let e = [b[0] - a[0], b[1] - a[1]];
+            let ap = [p[0] - a[0], p[1] - a[1]];
+            let t = ((ap[0] * e[0] + ap[1] * e[1]) * self.inv_ee[k]).clamp(0.0, 1.0);
+            let r = [ap[0] - t * e[0], ap[1] - t * e[1]];
+            let d2 = r[0] * r[0] + r[1] * r[1];
+            if d2 < best.d2 {
+                best = Closest {
+                    d2,
+                    edge: k as u8,
+                    t,
+                    r,
+                };
+            }
+        }
+        best
+    }
+}
+
 /// Adds `gd2 * d(d2)/d(vertex NDC)` to `gv` (the closest parameter `t` is optimal or at a
 /// clamp, so it does not move to first order).
 #[inline]
@@ -278,4 +437,71 @@ pub(crate) fn closest_backward(q: &Closest, gd2: f64, gv: &mut [[f64; 2]; 3]) {
 #[inline]
 pub(crate) fn ndc_to_clip(g: [f64; 2], ndc: [f64; 2], w: f64) -> [f64; 3] {
     [g[0] / w, g[1] / w, -(g[0] * ndc[0] + g[1] * ndc[1]) / w]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use autodiff::rng::Rng;
+
+    /// `FaceGeom`'s affine barycentrics, inside distance, outside bound and closest point
+    /// against the plain formulas, on random triangles (both orientations, slivers included)
+    /// and points around them.
+    #[test]
+    fn face_geom_matches_reference() {
+        let mut rng = Rng::new(7);
+        let mut inside_seen = 0;
+        for case in 0..400 {
+            let mut v = [[0.0f64; 2]; 3];
+            for q in v.iter_mut() {
+                *q = [rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)];
+            }
+            if case % 10 == 0 {
+                // A sliver: the third vertex near the first edge.
+                let t = rng.uniform(0.0, 1.0);
+                v[2] = [
+                    v[0][0] + t * (v[1][0] - v[0][0]) + 1e-6,
+                    v[0][1] + t * (v[1][1] - v[0][1]),
+                ];
+            }
+            let ndc = v.to_vec();
+            let depth = vec![1.0, 2.0, 3.0];
+            let g = FaceGeom::new(&ndc, &depth, &[0, 1, 2]);
+            let area = cross(
+                [v[1][0] - v[0][0], v[1][1] - v[0][1]],
+                [v[2][0] - v[0][0], v[2][1] - v[0][1]],
+            );
+            assert_eq!(g.area, area);
+            for _ in 0..20 {
+                let p = [rng.uniform(-1.5, 1.5), rng.uniform(-1.5, 1.5)];
+                let w = g.bary(p);
+                let mut n = [0.0; 3];
+                for k in 0..3 {
+                    let (a, b) = (v[(k + 1) % 3], v[(k + 2) % 3]);
+                    n[k] = cross([a[0] - p[0], a[1] - p[1]], [b[0] - p[0], b[1] - p[1]]);
+                }
+                for k in 0..3 {
+                    assert!(
+                        (w[k] - n[k] / area).abs() <= 1e-9 * (1.0 + w[k].abs()),
+                        "{w:?} {n:?}"
+                    );
+                }
+                let exact = closest_on_boundary(&v, p);
+                let fast = g.closest(p);
+                assert!((fast.d2 - exact.d2).abs() <= 1e-12 * (1.0 + exact.d2));
+                if w.iter().all(|&x| x >= 0.0) {
+                    inside_seen += 1;
+                    let d2 = g.inside_d2(&w);
+                    assert!(
+                        (d2 - exact.d2).abs() <= 1e-9 * (1e-6 + exact.d2),
+                        "{d2} {}",
+                        exact.d2
+                    );
+                } else {
+                    assert!(g.outside_d2_bound(&w) <= exact.d2 * (1.0 + 1e-9) + 1e-15);
+                }
+            }
+        }
+        assert!(inside_seen > 100, "{inside_seen}");
+    }
 }

@@ -39,8 +39,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory, closest_backward, closest_on_boundary, cross, ndc_to_clip, pixel_centre, project,
-    Closest, TileBins, TILE,
+    check_memory, closest_backward, ndc_to_clip, project, Closest, TileBins, TILE,
 };
 use crate::blend::blend_hard;
 use crate::error::RenderError;
@@ -285,9 +284,27 @@ struct Sample {
     li: u32,
     /// `x = d^2 / delta`.
     x: f64,
-    /// `ln(1 - exp(-x))`.
-    l: f64,
+    /// `1 - exp(-x)`, this face's factor of `1 - A`.
+    f: f64,
     closest: Closest,
+}
+
+/// Per-thread scratch of one tile (local row-major pixels): each pixel's samples in tile face
+/// order, and whether a face covers its centre (alpha 1, no gradient).
+struct TileScratch {
+    lists: Vec<Vec<Sample>>,
+    covered: Vec<bool>,
+    suffix: Vec<f64>,
+}
+
+impl TileScratch {
+    fn new() -> Self {
+        Self {
+            lists: (0..TILE * TILE).map(|_| Vec::new()).collect(),
+            covered: vec![false; TILE * TILE],
+            suffix: Vec::new(),
+        }
+    }
 }
 
 struct DibrAlphaOp {
@@ -297,53 +314,73 @@ struct DibrAlphaOp {
 }
 
 impl DibrAlphaOp {
-    /// The faces of a tile that reach pixel (row, col): `None` when the pixel centre lies in
-    /// (or on) one of them (alpha 1, no gradient); otherwise the samples, in tile order, into
-    /// `out`, and `L = sum_j ln(1 - e^{-x_j})`.
-    fn pixel(
-        &self,
-        prep: &Prep,
-        tile_faces: &[u32],
-        row: usize,
-        col: usize,
-        out: &mut Vec<Sample>,
-    ) -> Option<f64> {
-        out.clear();
-        let p = pixel_centre(row, col, self.s.width, self.s.height);
-        let xmax = self.s.cutoff_x();
-        let mut lsum = 0.0;
-        for (li, &fi) in tile_faces.iter().enumerate() {
-            if !prep.bins.reaches(fi as usize, row, col) {
-                continue;
-            }
-            let v = self.faces[fi as usize].map(|i| prep.ndc[i as usize]);
-            let mut n = [0.0; 3];
-            for k in 0..3 {
-                let (a, b) = (v[(k + 1) % 3], v[(k + 2) % 3]);
-                n[k] = cross([a[0] - p[0], a[1] - p[1]], [b[0] - p[0], b[1] - p[1]]);
-            }
-            let area = n[0] + n[1] + n[2];
-            if n.iter().all(|&x| x * area >= 0.0) {
-                return None;
-            }
-            let q = closest_on_boundary(&v, p);
-            let x = q.d2 / self.s.delta;
-            if x <= 0.0 {
-                return None;
-            }
-            if x > xmax {
-                continue;
-            }
-            let l = (-(-x).exp_m1()).ln();
-            lsum += l;
-            out.push(Sample {
-                li: li as u32,
-                x,
-                l,
-                closest: q,
-            });
+    /// Evaluates every face of tile `t` over its (cut-off expanded) box within the tile: marks
+    /// the pixels whose centre lies in (or on) a face, and collects for the others the faces
+    /// within the cut-off, in tile face order. Pairs beyond the cut-off are rejected by a lower
+    /// bound of their distance before the exact closest point is computed.
+    fn tile_samples(&self, prep: &Prep, t: usize, sc: &mut TileScratch) {
+        let s = &self.s;
+        let bins = &prep.bins;
+        for l in sc.lists.iter_mut() {
+            l.clear();
         }
-        Some(lsum)
+        sc.covered.fill(false);
+        let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
+        let xmax = s.cutoff_x();
+        let cut2 = s.cutoff_sq();
+        for (li, &fi) in bins.tiles[t].iter().enumerate() {
+            let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
+            else {
+                continue;
+            };
+            let g = &bins.geoms[fi as usize];
+            for row in r0..=r1 {
+                let py = bins.py[row];
+                let lbase = (row - r_base) * TILE;
+                for col in c0..=c1 {
+                    let lp = lbase + col - c_base;
+                    if sc.covered[lp] {
+                        continue;
+                    }
+                    let p = [bins.px[col], py];
+                    let w = g.bary(p);
+                    if w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0 {
+                        sc.covered[lp] = true;
+                        continue;
+                    }
+                    if g.outside_d2_bound(&w) > cut2 {
+                        continue;
+                    }
+                    let q = g.closest(p);
+                    let x = q.d2 / s.delta;
+                    if x <= 0.0 {
+                        sc.covered[lp] = true;
+                        continue;
+                    }
+                    if x > xmax {
+                        continue;
+                    }
+                    sc.lists[lp].push(Sample {
+                        li: li as u32,
+                        x,
+                        f: -(-x).exp_m1(),
+                        closest: q,
+                    });
+                }
+            }
+        }
+    }
+}
+
+/// `A = 1 - prod_j f_j` of one uncovered pixel. Where the product is near 1 (faint coverage)
+/// the difference is taken from the sum of logs for full relative precision.
+#[inline]
+fn alpha_of(samples: &[Sample]) -> f64 {
+    let prod: f64 = samples.iter().map(|q| q.f).product();
+    if prod < 0.5 {
+        1.0 - prod
+    } else {
+        -samples.iter().map(|q| q.f.ln()).sum::<f64>().exp_m1()
     }
 }
 
@@ -366,34 +403,40 @@ impl<T: Real> Op<T> for DibrAlphaOp {
         );
         let prep = Arc::new(Prep { ndc, depth, bins });
         let (w, h) = (s.width, s.height);
-        let mut img = vec![0.0f64; h * w];
         let this = &*self;
-        // Parallel over bands of tile rows; each band writes its own image rows.
-        img.par_chunks_mut(TILE * w)
-            .enumerate()
-            .for_each(|(ty, band)| {
-                let mut samples = Vec::new();
-                for tx in 0..prep.bins.tiles_x {
-                    let tf = &prep.bins.tiles[ty * prep.bins.tiles_x + tx];
-                    if tf.is_empty() {
-                        continue;
-                    }
-                    for lr in 0..TILE.min(h - ty * TILE) {
-                        for col in tx * TILE..(tx * TILE + TILE).min(w) {
-                            band[lr * w + col] =
-                                match this.pixel(&prep, tf, ty * TILE + lr, col, &mut samples) {
-                                    None => 1.0,
-                                    Some(l) => -l.exp_m1(),
-                                };
-                        }
-                    }
+        let bins = &prep.bins;
+        // Parallel over tiles, each into its own buffer (local row-major).
+        let tiles: Vec<Vec<f64>> = (0..bins.tiles.len())
+            .into_par_iter()
+            .map_init(TileScratch::new, |sc, t| {
+                if bins.tiles[t].is_empty() {
+                    return Vec::new();
                 }
-            });
+                this.tile_samples(&prep, t, sc);
+                sc.lists
+                    .iter()
+                    .zip(&sc.covered)
+                    .map(|(l, &cov)| if cov { 1.0 } else { alpha_of(l) })
+                    .collect()
+            })
+            .collect();
+        let mut img = Vec::with_capacity(h * w);
+        for row in 0..h {
+            for tx in 0..bins.tiles_x {
+                let tile = &tiles[(row / TILE) * bins.tiles_x + tx];
+                let cols = TILE.min(w - tx * TILE);
+                if tile.is_empty() {
+                    img.extend(std::iter::repeat_n(T::zero(), cols));
+                } else {
+                    let o = (row % TILE) * TILE;
+                    img.extend(tile[o..o + cols].iter().map(|&v| T::from_f64c(v)));
+                }
+            }
+        }
         self.prep = Some(prep);
-        let out =
-            ArrayD::from_shape_vec(IxDyn(&[h, w]), img.into_iter().map(T::from_f64c).collect())
-                .expect("h w");
-        Ok(vec![out])
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[h, w]), img).expect("h w")
+        ])
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
@@ -413,26 +456,43 @@ impl<T: Real> Op<T> for DibrAlphaOp {
         let bins = &prep.bins;
         let accs: Vec<Vec<f64>> = (0..bins.tiles.len())
             .into_par_iter()
-            .map(|t| {
+            .map_init(TileScratch::new, |sc, t| {
                 let tf = &bins.tiles[t];
                 let mut acc = vec![0.0; tf.len() * STRIDE];
                 if tf.is_empty() {
                     return acc;
                 }
                 let (tx, ty) = (t % bins.tiles_x, t / bins.tiles_x);
-                let mut samples = Vec::new();
-                for row in ty * TILE..(ty * TILE + TILE).min(h) {
-                    for col in tx * TILE..(tx * TILE + TILE).min(w) {
+                let rows = ty * TILE..(ty * TILE + TILE).min(h);
+                let cols = tx * TILE..(tx * TILE + TILE).min(w);
+                if rows.clone().all(|r| {
+                    go[r * w + cols.start..r * w + cols.end]
+                        .iter()
+                        .all(|&g| g == 0.0)
+                }) {
+                    return acc;
+                }
+                self.tile_samples(prep, t, sc);
+                for row in rows {
+                    for col in cols.clone() {
                         let g = go[row * w + col];
-                        if g == 0.0 {
+                        let lp = (row - ty * TILE) * TILE + col - tx * TILE;
+                        let samples = &sc.lists[lp];
+                        if g == 0.0 || sc.covered[lp] || samples.is_empty() {
                             continue;
                         }
-                        let Some(lsum) = self.pixel(prep, tf, row, col, &mut samples) else {
-                            continue;
-                        };
-                        for q in &samples {
+                        // prod_{k != j} f_k from prefix and suffix products (no division, so
+                        // exact also when some f_k underflows).
+                        sc.suffix.clear();
+                        sc.suffix.resize(samples.len() + 1, 1.0);
+                        for j in (0..samples.len()).rev() {
+                            sc.suffix[j] = sc.suffix[j + 1] * samples[j].f;
+                        }
+                        let mut prefix = 1.0;
+                        for (j, q) in samples.iter().enumerate() {
                             // dA/dx_j = -prod_{k != j} (1 - e^{-x_k}) e^{-x_j}.
-                            let gx = -g * (lsum - q.l - q.x).exp();
+                            let gx = -g * prefix * sc.suffix[j + 1] * (-q.x).exp();
+                            prefix *= q.f;
                             let mut gv = [[0.0f64; 2]; 3];
                             closest_backward(&q.closest, gx / s.delta, &mut gv);
                             let f = self.faces[tf[q.li as usize] as usize];

@@ -20,8 +20,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory, closest_backward, closest_on_boundary, cross, ndc_to_clip, pixel_centre, project,
-    Closest, TileBins, TILE,
+    check_memory, closest_backward, ndc_to_clip, project, FaceGeom, TileBins, TILE,
 };
 use crate::error::RenderError;
 
@@ -175,20 +174,44 @@ struct Prep {
     bins: TileBins,
 }
 
-/// One face at one pixel.
+/// One face at one pixel: the face is kept if the pixel centre is inside it, or outside within
+/// the cut-off.
 #[derive(Clone, Copy, Default)]
 struct Sample {
     /// Index into the tile's face list.
     li: u32,
+    /// `x = s d^2 / sigma`.
     x: f64,
+    /// `D = sigmoid(x)`.
     dd: f64,
-    closest: Closest,
+    /// `1 - D = sigmoid(-x)`.
+    omd: f64,
+    /// Screen-space barycentrics of the pixel centre.
     w: [f64; 3],
+    /// The same clipped to `[0, 1]` and renormalised.
     wn: [f64; 3],
+    /// Sum of the clipped barycentrics.
     sumwc: f64,
-    area: f64,
+    /// View depth `1 / sum_k wn_k / d_k`.
     z: f64,
+    /// `1 - (z - near) / (far - near)`.
     zn: f64,
+    /// `exp((zn - m) / gamma)`, set by [`SoftRasOp::aggregate`].
+    ef: f64,
+}
+
+/// Per-thread scratch: the samples of every pixel of one tile (local row-major order), each
+/// list in tile face order.
+struct TileScratch {
+    lists: Vec<Vec<Sample>>,
+}
+
+impl TileScratch {
+    fn new() -> Self {
+        Self {
+            lists: (0..TILE * TILE).map(|_| Vec::new()).collect(),
+        }
+    }
 }
 
 struct SoftRasOp {
@@ -197,20 +220,16 @@ struct SoftRasOp {
     prep: Option<Arc<Prep>>,
 }
 
-#[inline]
-fn sigmoid(x: f64) -> f64 {
+/// `(sigmoid(x), sigmoid(-x))` from one exponential, both to full relative precision.
+#[inline(always)]
+fn sigmoid_pair(x: f64) -> (f64, f64) {
+    let e = (-x.abs()).exp();
+    let r = 1.0 / (1.0 + e);
     if x >= 0.0 {
-        1.0 / (1.0 + (-x).exp())
+        (r, e * r)
     } else {
-        let e = x.exp();
-        e / (1.0 + e)
+        (e * r, r)
     }
-}
-
-/// `ln(1 + e^x)`, stable.
-#[inline]
-fn softplus(x: f64) -> f64 {
-    x.max(0.0) + (-x.abs()).exp().ln_1p()
 }
 
 fn prepare<T: Real>(
@@ -241,119 +260,139 @@ fn prepare<T: Real>(
 }
 
 impl SoftRasOp {
-    /// The faces of tile `t` that matter at pixel (row, col): samples into `out`, their
-    /// interpolated attributes into `cols` (C per sample).
-    #[allow(clippy::too_many_arguments)]
-    fn pixel_samples(
-        &self,
-        prep: &Prep,
-        tile_faces: &[u32],
-        row: usize,
-        col: usize,
-        out: &mut Vec<Sample>,
-        cols: &mut Vec<f64>,
-    ) {
+    /// Evaluates every face of tile `t` over its (cut-off expanded) box within the tile: the
+    /// samples of each pixel go to `sc.lists` (local row-major), each list in tile face order.
+    /// Pairs outside the triangle beyond the cut-off are rejected by a lower bound of their
+    /// distance before the exact closest point is computed.
+    fn tile_samples(&self, prep: &Prep, t: usize, sc: &mut TileScratch) {
         let s = &self.s;
-        out.clear();
-        cols.clear();
-        let c = prep.channels;
-        let p = pixel_centre(row, col, s.width, s.height);
-        for (li, &fi) in tile_faces.iter().enumerate() {
-            if !prep.bins.reaches(fi as usize, row, col) {
+        let bins = &prep.bins;
+        for l in sc.lists.iter_mut() {
+            l.clear();
+        }
+        let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
+        let inv_sigma = 1.0 / s.sigma;
+        let cut2 = s.cutoff_sq();
+        let zscale = 1.0 / (s.far - s.near);
+        for (li, &fi) in bins.tiles[t].iter().enumerate() {
+            let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
+            else {
                 continue;
-            }
-            let f = self.faces[fi as usize];
-            let v = f.map(|i| prep.ndc[i as usize]);
-            let mut n = [0.0; 3];
-            for k in 0..3 {
-                let (a, b) = (v[(k + 1) % 3], v[(k + 2) % 3]);
-                n[k] = cross([a[0] - p[0], a[1] - p[1]], [b[0] - p[0], b[1] - p[1]]);
-            }
-            let area = n[0] + n[1] + n[2];
-            // A sliver whose area rounds to zero (or overflows) at this pixel has no
-            // barycentrics here: skipped, in the forward and the backward alike.
-            if area == 0.0 || !area.is_finite() {
-                continue;
-            }
-            let w = n.map(|x| x / area);
-            let inside = w.iter().all(|&x| x >= 0.0);
-            let best = closest_on_boundary(&v, p);
-            let x = if inside {
-                best.d2 / s.sigma
-            } else {
-                -best.d2 / s.sigma
             };
-            let dd = sigmoid(x);
-            if !inside && dd < s.threshold {
-                continue;
-            }
-            let wc = w.map(|x| x.clamp(0.0, 1.0));
-            let sumwc = wc[0] + wc[1] + wc[2];
-            if !(sumwc > 0.0 && sumwc.is_finite()) {
-                continue;
-            }
-            let wn = wc.map(|x| x / sumwc);
-            let d = f.map(|i| prep.depth[i as usize]);
-            let zinv = wn[0] / d[0] + wn[1] / d[1] + wn[2] / d[2];
-            let z = 1.0 / zinv;
-            let zn = 1.0 - (z - s.near) / (s.far - s.near);
-            let wp = if s.perspective_correct {
-                [wn[0] / d[0] * z, wn[1] / d[1] * z, wn[2] / d[2] * z]
-            } else {
-                wn
-            };
-            for ch in 0..c {
-                let mut acc = 0.0;
-                for k in 0..3 {
-                    acc += wp[k] * prep.attrs[f[k] as usize * c + ch];
+            let g = &bins.geoms[fi as usize];
+            for row in r0..=r1 {
+                let py = bins.py[row];
+                let lbase = (row - r_base) * TILE;
+                for col in c0..=c1 {
+                    let p = [bins.px[col], py];
+                    let w = g.bary(p);
+                    let x = if w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0 {
+                        g.inside_d2(&w) * inv_sigma
+                    } else {
+                        if g.outside_d2_bound(&w) > cut2 {
+                            continue;
+                        }
+                        let d2 = g.closest(p).d2;
+                        if d2 > cut2 {
+                            continue;
+                        }
+                        -d2 * inv_sigma
+                    };
+                    let wc = w.map(|x| x.clamp(0.0, 1.0));
+                    let sumwc = wc[0] + wc[1] + wc[2];
+                    if !(sumwc > 0.0 && sumwc.is_finite()) {
+                        continue;
+                    }
+                    let wn = wc.map(|x| x / sumwc);
+                    let z = 1.0 / (wn[0] * g.inv_d[0] + wn[1] * g.inv_d[1] + wn[2] * g.inv_d[2]);
+                    let (dd, omd) = sigmoid_pair(x);
+                    sc.lists[lbase + col - c_base].push(Sample {
+                        li: li as u32,
+                        x,
+                        dd,
+                        omd,
+                        w,
+                        wn,
+                        sumwc,
+                        z,
+                        zn: 1.0 - (z - s.near) * zscale,
+                        ef: 0.0,
+                    });
                 }
-                cols.push(acc);
             }
-            out.push(Sample {
-                li: li as u32,
-                x,
-                dd,
-                closest: best,
-                w,
-                wn,
-                sumwc,
-                area,
-                z,
-                zn,
-            });
         }
     }
 
-    /// Aggregates the samples of one pixel: writes the C attributes and alpha into `px`;
-    /// returns (m, Z, S = sum ln(1 - D)).
+    /// Interpolation weights of a sample's vertex attributes: `wn`, or perspective-correct
+    /// `wn_k z / d_k`.
+    #[inline]
+    fn attr_weights(&self, g: &FaceGeom, q: &Sample) -> [f64; 3] {
+        if self.s.perspective_correct {
+            [
+                q.wn[0] * g.inv_d[0] * q.z,
+                q.wn[1] * g.inv_d[1] * q.z,
+                q.wn[2] * g.inv_d[2] * q.z,
+            ]
+        } else {
+            q.wn
+        }
+    }
+
+    /// Aggregates the samples of one pixel (of a tile with face list `tf`): writes the C
+    /// attributes and alpha into `px`, sets each sample's `ef`, returns `(Z, P)`: the blend's
+    /// normaliser and `P = prod (1 - D)`.
     fn aggregate(
         &self,
-        samples: &[Sample],
-        cols: &[f64],
-        c: usize,
+        prep: &Prep,
+        tf: &[u32],
+        samples: &mut [Sample],
         px: &mut [f64],
-    ) -> (f64, f64, f64) {
+    ) -> (f64, f64) {
         let s = &self.s;
+        let c = prep.channels;
         let m = samples.iter().fold(s.eps, |m, q| m.max(q.zn));
-        let eb = ((s.eps - m) / s.gamma).exp();
+        let inv_gamma = 1.0 / s.gamma;
+        let eb = ((s.eps - m) * inv_gamma).exp();
         let mut zsum = eb;
         for (ch, v) in px[..c].iter_mut().enumerate() {
             *v = eb * s.background.get(ch).copied().unwrap_or(0.0);
         }
-        let mut lsum = 0.0;
-        for (q, col) in samples.iter().zip(cols.chunks_exact(c.max(1))) {
-            let we = q.dd * ((q.zn - m) / s.gamma).exp();
-            zsum += we;
-            for ch in 0..c {
-                px[ch] += we * col[ch];
+        let mut prod = 1.0;
+        for q in samples.iter_mut() {
+            // exp underflows to exactly 0 below -745.2: skip the call.
+            let t = (q.zn - m) * inv_gamma;
+            q.ef = if t < -746.0 { 0.0 } else { t.exp() };
+            prod *= q.omd;
+            let we = q.dd * q.ef;
+            if we == 0.0 {
+                continue;
             }
-            lsum -= softplus(q.x);
+            zsum += we;
+            let fi = tf[q.li as usize] as usize;
+            let f = self.faces[fi];
+            let wp = self.attr_weights(&prep.bins.geoms[fi], q);
+            for (ch, v) in px[..c].iter_mut().enumerate() {
+                let a = wp[0] * prep.attrs[f[0] as usize * c + ch]
+                    + wp[1] * prep.attrs[f[1] as usize * c + ch]
+                    + wp[2] * prep.attrs[f[2] as usize * c + ch];
+                *v += we * a;
+            }
         }
         for v in px[..c].iter_mut() {
             *v /= zsum;
         }
-        px[c] = -lsum.exp_m1();
-        (m, zsum, lsum)
+        // Silhouette 1 - P. Where P is near 1 (faint coverage) the difference is taken from
+        // the sum of logs, sum ln(1 - D) = sum log1p(-D), for full relative precision.
+        px[c] = if prod < 0.5 {
+            1.0 - prod
+        } else {
+            -samples
+                .iter()
+                .map(|q| (-q.dd).ln_1p())
+                .sum::<f64>()
+                .exp_m1()
+        };
+        (zsum, prod)
     }
 }
 
@@ -365,49 +404,55 @@ impl<T: Real> Op<T> for SoftRasOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
         let prep = Arc::new(prepare(inputs[0], inputs[1], &self.faces, &self.s));
         let (w, h, c) = (self.s.width, self.s.height, prep.channels);
-        let mut img = vec![0.0f64; h * w * (c + 1)];
         let this = &*self;
-        let tiles_y = h.div_ceil(TILE);
-        // Parallel over bands of tile rows; each band writes its own image rows.
-        img.par_chunks_mut(TILE * w * (c + 1))
-            .enumerate()
-            .for_each(|(ty, band)| {
-                debug_assert!(ty < tiles_y);
-                let mut samples = Vec::new();
-                let mut cols = Vec::new();
-                for tx in 0..prep.bins.tiles_x {
-                    let tf = &prep.bins.tiles[ty * prep.bins.tiles_x + tx];
-                    for lr in 0..TILE.min(h - ty * TILE) {
-                        for col in tx * TILE..(tx * TILE + TILE).min(w) {
-                            this.pixel_samples(
-                                &prep,
-                                tf,
-                                ty * TILE + lr,
-                                col,
-                                &mut samples,
-                                &mut cols,
-                            );
-                            let o = (lr * w + col) * (c + 1);
-                            let px = &mut band[o..o + c + 1];
-                            if samples.is_empty() {
-                                for (ch, v) in px[..c].iter_mut().enumerate() {
-                                    *v = this.s.background.get(ch).copied().unwrap_or(0.0);
-                                }
-                                px[c] = 0.0;
-                            } else {
-                                this.aggregate(&samples, &cols, c, px);
-                            }
+        let bins = &prep.bins;
+        let bg: Vec<f64> = (0..c)
+            .map(|ch| this.s.background.get(ch).copied().unwrap_or(0.0))
+            .chain([0.0])
+            .collect();
+        // Parallel over tiles, each into its own buffer (local row-major, C + 1 values a pixel).
+        let tiles: Vec<Vec<f64>> = (0..bins.tiles.len())
+            .into_par_iter()
+            .map_init(
+                || (TileScratch::new(), vec![0.0; c + 1]),
+                |(sc, px), t| {
+                    if bins.tiles[t].is_empty() {
+                        return Vec::new();
+                    }
+                    this.tile_samples(&prep, t, sc);
+                    let tf = &bins.tiles[t];
+                    let mut out = Vec::with_capacity(TILE * TILE * (c + 1));
+                    for samples in sc.lists.iter_mut() {
+                        if samples.is_empty() {
+                            out.extend_from_slice(&bg);
+                        } else {
+                            this.aggregate(&prep, tf, samples, px);
+                            out.extend_from_slice(px);
                         }
                     }
+                    out
+                },
+            )
+            .collect();
+        let mut img = Vec::with_capacity(h * w * (c + 1));
+        for row in 0..h {
+            for tx in 0..bins.tiles_x {
+                let tile = &tiles[(row / TILE) * bins.tiles_x + tx];
+                let cols = TILE.min(w - tx * TILE);
+                if tile.is_empty() {
+                    for _ in 0..cols {
+                        img.extend(bg.iter().map(|&v| T::from_f64c(v)));
+                    }
+                } else {
+                    let o = (row % TILE) * TILE * (c + 1);
+                    img.extend(tile[o..o + cols * (c + 1)].iter().map(|&v| T::from_f64c(v)));
                 }
-            });
+            }
+        }
         self.prep = Some(prep);
-        let out = ArrayD::from_shape_vec(
-            IxDyn(&[h, w, c + 1]),
-            img.into_iter().map(T::from_f64c).collect(),
-        )
-        .expect("h w c+1");
-        Ok(vec![out])
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c+1")
+        ])
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
@@ -420,55 +465,75 @@ impl<T: Real> Op<T> for SoftRasOp {
         let go = ctx.grad_outputs[0].as_standard_layout();
         let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
         let stride = 3 * (4 + c);
-        let ntiles = prep.bins.tiles.len();
+        let bins = &prep.bins;
+        let inv_gamma = 1.0 / s.gamma;
         // Per tile: accumulators per (tile face, corner) of [dX, dY, dZ, dW, dattr...].
-        let accs: Vec<Vec<f64>> = (0..ntiles)
+        let accs: Vec<Vec<f64>> = (0..bins.tiles.len())
             .into_par_iter()
-            .map(|t| {
-                let tf = &prep.bins.tiles[t];
-                let mut acc = vec![0.0; tf.len() * stride];
-                if tf.is_empty() {
-                    return acc;
-                }
-                let (tx, ty) = (t % prep.bins.tiles_x, t / prep.bins.tiles_x);
-                let mut samples = Vec::new();
-                let mut cols = Vec::new();
-                let mut px = vec![0.0; c + 1];
-                for row in ty * TILE..(ty * TILE + TILE).min(h) {
-                    for col in tx * TILE..(tx * TILE + TILE).min(w) {
-                        let g = &go[(row * w + col) * (c + 1)..(row * w + col + 1) * (c + 1)];
-                        if g.iter().all(|&x| x == 0.0) {
-                            continue;
-                        }
-                        self.pixel_samples(prep, tf, row, col, &mut samples, &mut cols);
-                        if samples.is_empty() {
-                            continue;
-                        }
-                        let (m, zsum, lsum) = self.aggregate(&samples, &cols, c, &mut px);
-                        let p = pixel_centre(row, col, w, h);
-                        for (q, colv) in samples.iter().zip(cols.chunks_exact(c.max(1))) {
-                            let ef = ((q.zn - m) / s.gamma).exp();
-                            let mut cdiff = 0.0;
-                            for ch in 0..c {
-                                cdiff += g[ch] * (colv[ch] - px[ch]);
+            .map_init(
+                || (TileScratch::new(), vec![0.0; c + 1], vec![0.0; c]),
+                |(sc, px, colv), t| {
+                    let tf = &bins.tiles[t];
+                    let mut acc = vec![0.0; tf.len() * stride];
+                    if tf.is_empty() {
+                        return acc;
+                    }
+                    let (tx, ty) = (t % bins.tiles_x, t / bins.tiles_x);
+                    let grad_at = |row: usize, col: usize| {
+                        &go[(row * w + col) * (c + 1)..(row * w + col + 1) * (c + 1)]
+                    };
+                    let rows = ty * TILE..(ty * TILE + TILE).min(h);
+                    let cols = tx * TILE..(tx * TILE + TILE).min(w);
+                    if rows.clone().all(|r| {
+                        cols.clone()
+                            .all(|cc| grad_at(r, cc).iter().all(|&x| x == 0.0))
+                    }) {
+                        return acc;
+                    }
+                    self.tile_samples(prep, t, sc);
+                    for row in rows {
+                        for col in cols.clone() {
+                            let g = grad_at(row, col);
+                            let samples = &mut sc.lists[(row - ty * TILE) * TILE + col - tx * TILE];
+                            if samples.is_empty() || g.iter().all(|&x| x == 0.0) {
+                                continue;
                             }
-                            let g_d = ef * cdiff / zsum + g[c] * (lsum + softplus(q.x)).exp();
-                            let g_zn = q.dd * ef * cdiff / (s.gamma * zsum);
-                            let gscale = q.dd * ef / zsum;
-                            let fi = tf[q.li as usize] as usize;
-                            let a = &mut acc[q.li as usize * stride..(q.li as usize + 1) * stride];
-                            self.face_backward(prep, fi, p, q, g_d, g_zn, &g[..c], gscale, a);
+                            let (zsum, prod) = self.aggregate(prep, tf, samples, px);
+                            let p = [bins.px[col], bins.py[row]];
+                            for q in samples.iter() {
+                                let fi = tf[q.li as usize] as usize;
+                                let geom = &bins.geoms[fi];
+                                let f = self.faces[fi];
+                                let wp = self.attr_weights(geom, q);
+                                let mut cdiff = 0.0;
+                                for ch in 0..c {
+                                    let a = wp[0] * prep.attrs[f[0] as usize * c + ch]
+                                        + wp[1] * prep.attrs[f[1] as usize * c + ch]
+                                        + wp[2] * prep.attrs[f[2] as usize * c + ch];
+                                    colv[ch] = a;
+                                    cdiff += g[ch] * (a - px[ch]);
+                                }
+                                // dL/dx through D in the blend (dD/dx = D (1 - D)) and in the
+                                // silhouette (d(1 - P)/dx_f = P D_f).
+                                let gblend = q.ef * cdiff / zsum;
+                                let gx = gblend * q.dd * q.omd + g[c] * prod * q.dd;
+                                let g_zn = q.dd * gblend * inv_gamma;
+                                let gscale = q.dd * q.ef / zsum;
+                                let li = q.li as usize;
+                                let a = &mut acc[li * stride..(li + 1) * stride];
+                                self.face_backward(prep, fi, p, q, gx, g_zn, &g[..c], gscale, a);
+                            }
                         }
                     }
-                }
-                acc
-            })
+                    acc
+                },
+            )
             .collect();
         let nv = prep.ndc.len();
         let mut gclip = vec![0.0; nv * 4];
         let mut gattr = vec![0.0; nv * c];
         for (t, acc) in accs.iter().enumerate() {
-            for (li, &fi) in prep.bins.tiles[t].iter().enumerate() {
+            for (li, &fi) in bins.tiles[t].iter().enumerate() {
                 let f = self.faces[fi as usize];
                 let a = &acc[li * stride..(li + 1) * stride];
                 for k in 0..3 {
@@ -495,8 +560,9 @@ impl<T: Real> Op<T> for SoftRasOp {
 }
 
 impl SoftRasOp {
-    /// Chains dL/dD, dL/dzn and dL/d(interpolated attribute) (= `g_col * gscale`) of one sample
-    /// down to its three vertices: `acc[k * (4 + C)..]` gets [dX, dY, dZ, dW, dattr...] of corner k.
+    /// Chains dL/dx (x = s d^2 / sigma), dL/dzn and dL/d(interpolated attribute)
+    /// (= `g_col * gscale`) of one sample at pixel `p` down to its three vertices:
+    /// `acc[k * (4 + C)..]` gets [dX, dY, dZ, dW, dattr...] of corner k.
     #[allow(clippy::too_many_arguments)]
     fn face_backward(
         &self,
@@ -504,7 +570,7 @@ impl SoftRasOp {
         fi: usize,
         p: [f64; 2],
         q: &Sample,
-        g_d: f64,
+        gx: f64,
         g_zn: f64,
         g_col: &[f64],
         gscale: f64,
@@ -513,16 +579,19 @@ impl SoftRasOp {
         let s = &self.s;
         let c = prep.channels;
         let f = self.faces[fi];
-        let v = f.map(|i| prep.ndc[i as usize]);
+        let geom = &prep.bins.geoms[fi];
+        let v = geom.v;
         let d = f.map(|i| prep.depth[i as usize]);
         let mut gv = [[0.0f64; 2]; 3];
         let mut gdep = [0.0f64; 3];
         let mut gwn = [0.0f64; 3];
-        // Coverage: x = s d2 / sigma.
-        let gx = g_d * q.dd * sigmoid(-q.x);
+        // Coverage: x = s d2 / sigma, d2 the squared distance to the closest boundary point
+        // (for an inside point the foot on the nearest edge line).
         let sign = if q.x >= 0.0 { 1.0 } else { -1.0 };
         let gd2 = gx * sign / s.sigma;
-        closest_backward(&q.closest, gd2, &mut gv);
+        if gd2 != 0.0 {
+            closest_backward(&geom.closest(p), gd2, &mut gv);
+        }
         // Depth and attributes.
         let mut gz = -g_zn / (s.far - s.near);
         let stride = 4 + c;
@@ -574,7 +643,7 @@ impl SoftRasOp {
         }
         let dot2 = gw[0] * q.w[0] + gw[1] * q.w[1] + gw[2] * q.w[2];
         for k in 0..3 {
-            let gn = (gw[k] - dot2) / q.area;
+            let gn = (gw[k] - dot2) / geom.area;
             if gn == 0.0 {
                 continue;
             }
