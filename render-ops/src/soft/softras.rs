@@ -12,6 +12,16 @@
 //! `zn = 1 - z01`. Aggregation: `I = (sum_f D_f e_f c_f + e_b bg) / (sum_f D_f e_f + e_b)`,
 //! `e_f = exp((zn_f - m) / gamma)`, `e_b = exp((eps - m) / gamma)`, `m = max(eps, max_f zn_f)`.
 //! Faces with a vertex at `w <= 0` are skipped (no near clipping, as in SoftRas).
+//!
+//! Evaluation: per 16 x 16 tile, each binned face is evaluated over its cut-off box within the
+//! tile (a scatter into per-pixel sample lists, in face order), from per-face geometry
+//! precomputed once ([`super::common::FaceGeom`]): affine barycentrics, the distance to the
+//! boundary of an inside point as `min_k w_k alt_k`, and for an outside point a lower bound
+//! that rejects pairs beyond the cut-off before the exact closest point. `D` and `1 - D` come
+//! from one exponential. Silhouette stability: `P = prod (1 - D)` is a plain product (each
+//! factor in `[0, 1]`, so it never overflows and is exactly 0 when some `D = 1`); where
+//! `P >= 1/2` the silhouette is `-expm1(sum log1p(-D))` for full relative precision of faint
+//! coverage. Its gradient is `d(1 - P)/dx_f = P D_f`, with no division by `1 - D_f`.
 
 use std::sync::Arc;
 
