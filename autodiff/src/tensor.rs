@@ -175,25 +175,17 @@ fn build<T: Real>(n: usize, fill: impl Fn(&mut [MaybeUninit<T>], usize) + Sync) 
 /// FMA and with AVX-512, picked at run time (the same IEEE operations in each, so the results
 /// are bit-identical whichever runs: Rust never contracts a multiply and an add into an FMA). The closures are inlined into each, so that their arithmetic (and
 /// the polynomials of [`crate::vmath`]) vectorises at the wider width where available.
-macro_rules! multiversion {
-    ($name:ident, $body:ident, ($($a:ident: $ta:ty),*), $f:ident: [$($tf:tt)+]) => {
-        #[inline(always)]
-        fn $body<T: Real, F: $($tf)+>(o: &mut [MaybeUninit<T>], $($a: $ta,)* $f: &F) {
-            let n = o.len();
-            $(let $a = &$a[..n];)*
-            for (i, o) in o.iter_mut().enumerate() {
-                o.write($f($($a[i]),*));
-            }
-        }
-        fn $name<T: Real, F: $($tf)+>(o: &mut [MaybeUninit<T>], $($a: $ta,)* $f: &F) {
+macro_rules! multiversion_dispatch {
+    ($name:ident, $body:ident, $out:ty, ($($a:ident: $ta:ty),*), $f:ident: [$($tf:tt)+]) => {
+        fn $name<T: Real, F: $($tf)+>(o: $out, $($a: $ta,)* $f: &F) {
             #[cfg(target_arch = "x86_64")]
             {
                 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
-                unsafe fn wide512<T: Real, F: $($tf)+>(o: &mut [MaybeUninit<T>], $($a: $ta,)* $f: &F) {
+                unsafe fn wide512<T: Real, F: $($tf)+>(o: $out, $($a: $ta,)* $f: &F) {
                     $body(o, $($a,)* $f)
                 }
                 #[target_feature(enable = "avx2,fma")]
-                unsafe fn wide<T: Real, F: $($tf)+>(o: &mut [MaybeUninit<T>], $($a: $ta,)* $f: &F) {
+                unsafe fn wide<T: Real, F: $($tf)+>(o: $out, $($a: $ta,)* $f: &F) {
                     $body(o, $($a,)* $f)
                 }
                 if std::arch::is_x86_feature_detected!("avx512f")
@@ -215,6 +207,21 @@ macro_rules! multiversion {
     };
 }
 
+/// Writing loop bodies, `o[i] = f(a[i], ...)`, multiversioned by [`multiversion_dispatch!`].
+macro_rules! multiversion {
+    ($name:ident, $body:ident, ($($a:ident: $ta:ty),*), $f:ident: [$($tf:tt)+]) => {
+        #[inline(always)]
+        fn $body<T: Real, F: $($tf)+>(o: &mut [MaybeUninit<T>], $($a: $ta,)* $f: &F) {
+            let n = o.len();
+            $(let $a = &$a[..n];)*
+            for (i, o) in o.iter_mut().enumerate() {
+                o.write($f($($a[i]),*));
+            }
+        }
+        multiversion_dispatch!($name, $body, &mut [MaybeUninit<T>], ($($a: $ta),*), $f: [$($tf)+]);
+    };
+}
+
 multiversion!(fill1, fill1_body, (a: &[T]), f: [Fn(T) -> T]);
 multiversion!(fill2, fill2_body, (a: &[T], b: &[T]), f: [Fn(T, T) -> T]);
 multiversion!(fill3, fill3_body, (a: &[T], b: &[T], c: &[T]), f: [Fn(T, T, T) -> T]);
@@ -232,32 +239,7 @@ macro_rules! multiversion_inplace {
                 *o = $f(*o, $($a[i]),*);
             }
         }
-        fn $name<T: Real, F: $($tf)+>(o: &mut [T], $($a: $ta,)* $f: &F) {
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
-                unsafe fn wide512<T: Real, F: $($tf)+>(o: &mut [T], $($a: $ta,)* $f: &F) {
-                    $body(o, $($a,)* $f)
-                }
-                #[target_feature(enable = "avx2,fma")]
-                unsafe fn wide<T: Real, F: $($tf)+>(o: &mut [T], $($a: $ta,)* $f: &F) {
-                    $body(o, $($a,)* $f)
-                }
-                if std::arch::is_x86_feature_detected!("avx512f")
-                    && std::arch::is_x86_feature_detected!("avx512vl")
-                    && std::arch::is_x86_feature_detected!("avx512dq")
-                    && std::arch::is_x86_feature_detected!("avx512bw")
-                {
-                    // SAFETY: the CPU has the features `wide512` is compiled for.
-                    return unsafe { wide512(o, $($a,)* $f) };
-                }
-                if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-                    // SAFETY: the CPU has the features `wide` is compiled for.
-                    return unsafe { wide(o, $($a,)* $f) };
-                }
-            }
-            $body(o, $($a,)* $f)
-        }
+        multiversion_dispatch!($name, $body, &mut [T], ($($a: $ta),*), $f: [$($tf)+]);
     };
 }
 

@@ -349,14 +349,17 @@ impl SoftRasOp {
     }
 
     /// Aggregates the samples of one pixel (of a tile with face list `tf`): writes the C
-    /// attributes and alpha into `px`, sets each sample's `ef`, returns `(Z, P)`: the blend's
-    /// normaliser and `P = prod (1 - D)`.
+    /// attributes and alpha into `px`, sets each sample's `ef`, keeps each sample's
+    /// interpolated attributes in `cols` (C per sample; zeros where its blend weight is 0, as
+    /// the backward then multiplies them by 0), returns `(Z, P)`: the blend's normaliser and
+    /// `P = prod (1 - D)`.
     fn aggregate(
         &self,
         prep: &Prep,
         tf: &[u32],
         samples: &mut [Sample],
         px: &mut [f64],
+        cols: &mut Vec<f64>,
     ) -> (f64, f64) {
         let s = &self.s;
         let c = prep.channels;
@@ -368,7 +371,9 @@ impl SoftRasOp {
             *v = eb * s.background.get(ch).copied().unwrap_or(0.0);
         }
         let mut prod = 1.0;
-        for q in samples.iter_mut() {
+        cols.clear();
+        cols.resize(samples.len() * c, 0.0);
+        for (j, q) in samples.iter_mut().enumerate() {
             // exp underflows to exactly 0 below -745.2: skip the call.
             let t = (q.zn - m) * inv_gamma;
             q.ef = if t < -746.0 { 0.0 } else { t.exp() };
@@ -381,10 +386,12 @@ impl SoftRasOp {
             let fi = tf[q.li as usize] as usize;
             let f = self.faces[fi];
             let wp = self.attr_weights(&prep.bins.geoms[fi], q);
-            for (ch, v) in px[..c].iter_mut().enumerate() {
+            let col = &mut cols[j * c..(j + 1) * c];
+            for (ch, (v, cv)) in px[..c].iter_mut().zip(col.iter_mut()).enumerate() {
                 let a = wp[0] * prep.attrs[f[0] as usize * c + ch]
                     + wp[1] * prep.attrs[f[1] as usize * c + ch]
                     + wp[2] * prep.attrs[f[2] as usize * c + ch];
+                *cv = a;
                 *v += we * a;
             }
         }
@@ -424,8 +431,8 @@ impl<T: Real> Op<T> for SoftRasOp {
         let tiles: Vec<Vec<f64>> = (0..bins.tiles.len())
             .into_par_iter()
             .map_init(
-                || (TileScratch::new(), vec![0.0; c + 1]),
-                |(sc, px), t| {
+                || (TileScratch::new(), vec![0.0; c + 1], Vec::new()),
+                |(sc, px, colbuf), t| {
                     if bins.tiles[t].is_empty() {
                         return Vec::new();
                     }
@@ -436,7 +443,7 @@ impl<T: Real> Op<T> for SoftRasOp {
                         if samples.is_empty() {
                             out.extend_from_slice(&bg);
                         } else {
-                            this.aggregate(&prep, tf, samples, px);
+                            this.aggregate(&prep, tf, samples, px, colbuf);
                             out.extend_from_slice(px);
                         }
                     }
@@ -481,8 +488,8 @@ impl<T: Real> Op<T> for SoftRasOp {
         let accs: Vec<Vec<f64>> = (0..bins.tiles.len())
             .into_par_iter()
             .map_init(
-                || (TileScratch::new(), vec![0.0; c + 1], vec![0.0; c]),
-                |(sc, px, colv), t| {
+                || (TileScratch::new(), vec![0.0; c + 1], Vec::new()),
+                |(sc, px, colbuf), t| {
                     let tf = &bins.tiles[t];
                     let mut acc = vec![0.0; tf.len() * stride];
                     if tf.is_empty() {
@@ -508,21 +515,12 @@ impl<T: Real> Op<T> for SoftRasOp {
                             if samples.is_empty() || g.iter().all(|&x| x == 0.0) {
                                 continue;
                             }
-                            let (zsum, prod) = self.aggregate(prep, tf, samples, px);
+                            let (zsum, prod) = self.aggregate(prep, tf, samples, px, colbuf);
                             let p = [bins.px[col], bins.py[row]];
-                            for q in samples.iter() {
+                            for (j, q) in samples.iter().enumerate() {
                                 let fi = tf[q.li as usize] as usize;
-                                let geom = &bins.geoms[fi];
-                                let f = self.faces[fi];
-                                let wp = self.attr_weights(geom, q);
-                                let mut cdiff = 0.0;
-                                for ch in 0..c {
-                                    let a = wp[0] * prep.attrs[f[0] as usize * c + ch]
-                                        + wp[1] * prep.attrs[f[1] as usize * c + ch]
-                                        + wp[2] * prep.attrs[f[2] as usize * c + ch];
-                                    colv[ch] = a;
-                                    cdiff += g[ch] * (a - px[ch]);
-                                }
+                                let colq = &colbuf[j * c..(j + 1) * c];
+                                let cdiff: f64 = (0..c).map(|ch| g[ch] * (colq[ch] - px[ch])).sum();
                                 // dL/dx through D in the blend (dD/dx = D (1 - D)) and in the
                                 // silhouette (d(1 - P)/dx_f = P D_f).
                                 let gblend = q.ef * cdiff / zsum;
