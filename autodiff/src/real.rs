@@ -82,6 +82,18 @@ pub trait Real:
     fn k_sigmoid(self) -> Self {
         crate::ops::elementwise::sigmoid(self)
     }
+    /// The slice as `f32` when `Self` is `f32`: the door to explicit-SIMD `f32` kernels.
+    #[doc(hidden)]
+    #[inline(always)]
+    fn as_f32(_s: &[Self]) -> Option<&[f32]> {
+        None
+    }
+    /// Mutable [`Real::as_f32`].
+    #[doc(hidden)]
+    #[inline(always)]
+    fn as_f32_mut(_s: &mut [Self]) -> Option<&mut [f32]> {
+        None
+    }
 }
 
 impl Real for f32 {
@@ -115,6 +127,14 @@ impl Real for f32 {
     #[inline(always)]
     fn k_sigmoid(self) -> Self {
         crate::vmath::sigmoid(self)
+    }
+    #[inline(always)]
+    fn as_f32(s: &[Self]) -> Option<&[f32]> {
+        Some(s)
+    }
+    #[inline(always)]
+    fn as_f32_mut(s: &mut [Self]) -> Option<&mut [f32]> {
+        Some(s)
     }
     #[inline(always)]
     fn from_f64c(x: f64) -> Self {

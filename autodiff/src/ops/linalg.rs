@@ -28,7 +28,7 @@ pub fn gemv<T: Real>(a: &ArrayView2<T>, x: &ArrayView1<T>) -> Array1<T> {
             .enumerate()
             .for_each(|(blk, ys)| {
                 let rows = &a_s[blk * ROW_BLOCK * k..(blk * ROW_BLOCK + ys.len()) * k];
-                dispatch_gemv_rows(rows, x_s, ys);
+                gemv_block(rows, x_s, ys);
             });
     } else {
         for (yv, row) in y.iter_mut().zip(a.rows()) {
@@ -58,7 +58,7 @@ pub fn gemv_t<T: Real>(a: &ArrayView2<T>, g: &ArrayView1<T>) -> Array1<T> {
             .rev()
             .for_each(|(blk, acc)| {
                 let r1 = ((blk + 1) * ROW_BLOCK).min(m);
-                dispatch_axpy_rows(
+                axpy_block(
                     &a_s[blk * ROW_BLOCK * k..r1 * k],
                     &g_s[blk * ROW_BLOCK..r1],
                     acc,
@@ -106,26 +106,36 @@ fn gemv_rows<T: Real>(rows: &[T], x: &[T], ys: &mut [T]) {
     }
 }
 
-/// `acc += sum_r g[r] rows[r]`, four rows at a time (fixed order).
+/// `acc += sum_r g[r] rows[r]`, row by row (one sequential stream through the rows, see
+/// [`super::stream_f32`]).
 #[inline(always)]
 fn axpy_rows<T: Real>(rows: &[T], g: &[T], acc: &mut [T]) {
-    let k = acc.len();
-    let mut quads = rows.chunks_exact(4 * k);
-    let mut gq = g.chunks_exact(4);
-    for (q, gs) in (&mut quads).zip(&mut gq) {
-        let (r0, rest) = q.split_at(k);
-        let (r1, rest) = rest.split_at(k);
-        let (r2, r3) = rest.split_at(k);
-        let (g0, g1, g2, g3) = (gs[0], gs[1], gs[2], gs[3]);
-        for j in 0..k {
-            acc[j] += (g0 * r0[j] + g1 * r1[j]) + (g2 * r2[j] + g3 * r3[j]);
-        }
-    }
-    for (row, &gr) in quads.remainder().chunks_exact(k).zip(gq.remainder()) {
+    for (row, &gr) in rows.chunks_exact(acc.len()).zip(g) {
         for (o, &v) in acc.iter_mut().zip(row) {
             *o += gr * v;
         }
     }
+}
+
+/// One row block of [`gemv`]: the explicit AVX2 kernel for `f32` where the CPU has it, else
+/// the generic one.
+fn gemv_block<T: Real>(rows: &[T], x: &[T], ys: &mut [T]) {
+    if let (Some(r), Some(x), Some(y)) = (T::as_f32(rows), T::as_f32(x), T::as_f32_mut(ys)) {
+        if super::stream_f32::gemv_rows(r, x, y) {
+            return;
+        }
+    }
+    dispatch_gemv_rows(rows, x, ys);
+}
+
+/// One row block of [`gemv_t`], dispatched as [`gemv_block`].
+fn axpy_block<T: Real>(rows: &[T], g: &[T], acc: &mut [T]) {
+    if let (Some(r), Some(g), Some(a)) = (T::as_f32(rows), T::as_f32(g), T::as_f32_mut(acc)) {
+        if super::stream_f32::axpy_rows(r, g, a) {
+            return;
+        }
+    }
+    dispatch_axpy_rows(rows, g, acc);
 }
 
 /// Runs `f` compiled for AVX2 + FMA when the CPU has them (the generic loops above are
@@ -330,13 +340,13 @@ mod tests {
     use super::*;
     use crate::rng::Rng;
 
-    /// Each row is summed as `dot_slice` does, whatever the block and thread split.
+    /// Generic path (f64): each row is summed as `dot_slice` does, whatever the block split.
     #[test]
     fn gemv_rows_match_dot_slice() {
         let mut r = Rng::new(11);
         for (m, k) in [(1031usize, 199usize), (7, 16), (5, 3), (13, 35)] {
-            let a: Tensor<f32> = r.normal_tensor(&[m, k]);
-            let x: Tensor<f32> = r.normal_tensor(&[k]);
+            let a: Tensor<f64> = r.normal_tensor(&[m, k]);
+            let x: Tensor<f64> = r.normal_tensor(&[k]);
             let a2 = as2(&a);
             let x1 = as1(&x);
             let y = gemv(&a2, &x1);
@@ -344,6 +354,40 @@ mod tests {
                 let want = dot_slice(row.as_slice().unwrap(), x1.as_slice().unwrap());
                 assert_eq!(y[i].to_bits(), want.to_bits(), "m {m} k {k} row {i}");
             }
+        }
+    }
+
+    /// f32 (explicit kernels where the CPU has them): bit-identical on 1 and 3 threads, and
+    /// within f32 rounding of the f64 products.
+    #[test]
+    fn gemv_f32_deterministic_and_accurate() {
+        let mut r = Rng::new(12);
+        let (m, k) = (3000usize, 199usize);
+        let a: Tensor<f64> = r.normal_tensor(&[m, k]);
+        let x: Tensor<f64> = r.normal_tensor(&[k]);
+        let g: Tensor<f64> = r.normal_tensor(&[m]);
+        let (af, xf, gf) = (
+            a.mapv(|v| v as f32),
+            x.mapv(|v| v as f32),
+            g.mapv(|v| v as f32),
+        );
+        let run = |n: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap();
+            pool.install(|| (gemv(&as2(&af), &as1(&xf)), gemv_t(&as2(&af), &as1(&gf))))
+        };
+        let (y1, t1) = run(1);
+        let (y3, t3) = run(3);
+        assert!(y1.iter().zip(&y3).all(|(p, q)| p.to_bits() == q.to_bits()));
+        assert!(t1.iter().zip(&t3).all(|(p, q)| p.to_bits() == q.to_bits()));
+        let (y64, t64) = (gemv(&as2(&a), &as1(&x)), gemv_t(&as2(&a), &as1(&g)));
+        for (p, q) in y1.iter().zip(&y64) {
+            assert!((*p as f64 - q).abs() < 1e-4 * (1.0 + q.abs()), "{p} {q}");
+        }
+        for (p, q) in t1.iter().zip(&t64) {
+            assert!((*p as f64 - q).abs() < 1e-3 * (1.0 + q.abs()), "{p} {q}");
         }
     }
 }

@@ -4,4 +4,5 @@ pub mod index;
 pub mod linalg;
 pub mod reduce;
 pub mod shape;
+mod stream_f32;
 pub mod vector;
