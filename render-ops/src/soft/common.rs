@@ -10,9 +10,10 @@ use crate::raster::{RasterError, MAX_FRAGMENT_SLOTS};
 
 /// Largest number of (tile, face) entries the soft methods' per-tile face lists may hold: a
 /// face counts once for every 16 x 16 pixel tile its screen box, expanded by the coverage
-/// cut-off, touches. Each entry is a 4-byte face id in the forward and a `3 x (4 + C)` `f64`
-/// accumulator in the SoftRas backward (`3 x 4` for DIB-R), about 2.8 GB for RGB at the limit.
-/// A fine mesh of small faces needs a few entries per face; a huge cut-off (e.g. SoftRas
+/// cut-off, touches. Each entry is a 4-byte face id (64 MB at the limit); the backwards keep
+/// one accumulator per face (`3 x (4 + C)` `f64` for SoftRas, `3 x 3` for DIB-R), not per
+/// entry. The forwards' per-tile scratch holds the kept (face, pixel) pairs of one tile at a
+/// time (48 bytes each for SoftRas, 8 for DIB-R) per thread. A fine mesh of small faces needs a few entries per face; a huge cut-off (e.g. SoftRas
 /// `threshold` 0, which makes every face reach every pixel) multiplies faces by tiles and is
 /// refused with [`RasterError::TooLarge`] before anything is allocated.
 pub const MAX_SOFT_BIN_ENTRIES: usize = 1 << 24;
@@ -61,6 +62,11 @@ pub(crate) struct TileBins {
     pub px: Vec<f64>,
     /// NDC y of every pixel row's centre.
     pub py: Vec<f64>,
+    /// `px[col]` is `px0 + dpx * col` up to rounding (for [`TileBins::span`]).
+    px0: f64,
+    dpx: f64,
+    /// Cut-off distance the boxes were expanded by (NDC units).
+    dmax: f64,
 }
 
 impl TileBins {
@@ -113,7 +119,62 @@ impl TileBins {
             geoms,
             px,
             py,
+            px0: 1.0 / width as f64 - 1.0,
+            dpx: 2.0 / width as f64,
+            dmax,
         }
+    }
+
+    /// The row spans of face `fi`'s cut-off region ([`FaceSpan`]).
+    #[inline]
+    pub fn span(&self, fi: usize) -> FaceSpan {
+        let g = &self.geoms[fi];
+        let ox = self.px0 - g.v[0][0];
+        let mut sp = FaceSpan {
+            a: [0.0; 3],
+            by: [0.0; 3],
+            inv_s: [0.0; 3],
+        };
+        for k in 0..3 {
+            let b = g.bw[k];
+            // w_k(col, row) = b0 + b1 (px0 + dpx col - v0x) + b2 (py - v0y), needed
+            // >= lim = -dmax / alt_k; the margin covers the rounding of both evaluations.
+            let lim = -self.dmax / g.alt[k];
+            let err = 1e-10
+                * (b[0].abs()
+                    + b[1].abs() * (1.0 + g.v[0][0].abs())
+                    + b[2].abs() * (1.0 + g.v[0][1].abs())
+                    + lim.abs());
+            let s = b[1] * self.dpx;
+            // need(py) = lim - err - w_k(col 0) = a - by py; col >= need / s when s > 0.
+            sp.a[k] = lim - err - (b[0] + b[1] * ox - b[2] * g.v[0][1]);
+            sp.by[k] = b[2];
+            sp.inv_s[k] = 1.0 / s;
+        }
+        sp
+    }
+
+    /// Faces that have a box, in the order of the tile holding their box's first pixel
+    /// (row-major tiles; face order within a tile), so that faces visited one after another
+    /// touch nearby pixels.
+    pub fn spatial_order(&self) -> Vec<u32> {
+        let home = |r: &[i64; 4]| (r[2] as usize / TILE) * self.tiles_x + r[0] as usize / TILE;
+        let mut start = vec![0usize; self.tiles.len() + 1];
+        for r in self.rects.iter().filter(|r| r[0] <= r[1]) {
+            start[home(r) + 1] += 1;
+        }
+        for t in 0..self.tiles.len() {
+            start[t + 1] += start[t];
+        }
+        let mut order = vec![0u32; start[self.tiles.len()]];
+        for (fi, r) in self.rects.iter().enumerate() {
+            if r[0] <= r[1] {
+                let h = home(r);
+                order[start[h]] = fi as u32;
+                start[h] += 1;
+            }
+        }
+        order
     }
 
     /// The part of face `fi`'s box inside tile `t` as (c0, c1, r0, r1), inclusive, in image
@@ -133,6 +194,42 @@ impl TileBins {
         let r0 = (rc[2] as usize).max(ty * TILE);
         let r1 = (rc[3] as usize).min((ty * TILE + TILE).min(height) - 1);
         (rc[0] <= rc[1] && c0 <= c1 && r0 <= r1).then_some([c0, c1, r0, r1])
+    }
+}
+
+/// The row spans of one face's cut-off region: the columns of a row that may pass the face's
+/// outside bound ([`FaceGeom::outside_d2_bound`] `<= dmax^2`, `dmax` the cut-off the bins were
+/// built with), i.e. the pixels no farther than `dmax` beyond any of the three edge lines,
+/// `w_k >= -dmax / alt_k` for every `k`. Each `w_k` is affine along a row, so this is one
+/// interval (the scanline of the triangle dilated along its edge normals). It is widened by a
+/// relative margin and one column on each side, so the per-pixel test alone decides which
+/// pixels are kept: the set of kept pairs is that of the whole box.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct FaceSpan {
+    a: [f64; 3],
+    by: [f64; 3],
+    inv_s: [f64; 3],
+}
+
+impl FaceSpan {
+    /// The columns within `[c0, c1]` of the row whose centres have NDC y `py`, or `None`.
+    #[inline(always)]
+    pub fn row(&self, py: f64, c0: usize, c1: usize) -> Option<(usize, usize)> {
+        let (mut lo, mut hi) = (c0 as f64, c1 as f64);
+        for k in 0..3 {
+            let need = self.a[k] - self.by[k] * py;
+            let inv_s = self.inv_s[k];
+            if inv_s > 0.0 && inv_s.is_finite() {
+                lo = lo.max((need * inv_s).ceil() - 1.0);
+            } else if inv_s < 0.0 && inv_s.is_finite() {
+                hi = hi.min((need * inv_s).floor() + 1.0);
+            } else if need > 0.0 && !inv_s.is_finite() {
+                // w_k does not change along the row (s = 0, 1 / s infinite).
+                return None;
+            }
+        }
+        // NaN bounds (never expected) leave the box as it is: `max`/`min` ignore NaN.
+        (lo <= hi).then(|| (lo.max(c0 as f64) as usize, hi.min(c1 as f64) as usize))
     }
 }
 
@@ -389,6 +486,34 @@ impl FaceGeom {
         d * d
     }
 
+    /// Closest point of the boundary to an inside point `p` with barycentrics `w`: the foot on
+    /// the nearest edge line (the edge opposite the smallest `w_k alt_k`), which for a point
+    /// inside the triangle lies on that edge; as [`FaceGeom::closest`] up to ties.
+    #[inline(always)]
+    pub fn closest_inside(&self, p: [f64; 2], w: &[f64; 3]) -> Closest {
+        let d = [w[0] * self.alt[0], w[1] * self.alt[1], w[2] * self.alt[2]];
+        let k = if d[0] <= d[1] && d[0] <= d[2] {
+            0
+        } else if d[1] <= d[2] {
+            1
+        } else {
+            2
+        };
+        // Edge `e` runs from vertex k + 1 to vertex k + 2.
+        let e = (k + 1) % 3;
+        let (a, b) = (self.v[e], self.v[(e + 1) % 3]);
+        let ed = [b[0] - a[0], b[1] - a[1]];
+        let ap = [p[0] - a[0], p[1] - a[1]];
+        let t = ((ap[0] * ed[0] + ap[1] * ed[1]) * self.inv_ee[e]).clamp(0.0, 1.0);
+        let r = [ap[0] - t * ed[0], ap[1] - t * ed[1]];
+        Closest {
+            d2: r[0] * r[0] + r[1] * r[1],
+            edge: e as u8,
+            t,
+            r,
+        }
+    }
+
     /// Closest point of the triangle's boundary to `p`, as [`closest_on_boundary`] (first edge
     /// wins ties) with the edges' inverse squared lengths precomputed.
     #[inline]
@@ -416,6 +541,51 @@ impl FaceGeom {
         }
         best
     }
+}
+
+/// `e^x` without a libm call, for the soft kernels' per-pair exponentials (the sigmoid of
+/// SoftRas eq. (1), the depth weights of eq. (6), DIB-R's `e^{-x}`), inlined into their loops.
+/// Cody-Waite reduction `x = n ln 2 + r`, `|r| <= ln(2) / 2` (the two-part `ln 2` of fdlibm),
+/// and the Taylor polynomial of degree 13 (truncation below `4e-18` relative) evaluated by
+/// Estrin's scheme (short dependency chains); within 2 ulp of the exact value (tested against
+/// `f64::exp`). Outside `(-708, 709)` (subnormal or overflowing results, NaN) it defers to
+/// `f64::exp`.
+#[inline(always)]
+pub(crate) fn exp(x: f64) -> f64 {
+    if !(x > -708.0 && x < 709.0) {
+        return x.exp();
+    }
+    const SHIFT: f64 = 6755399441055744.0; // 1.5 * 2^52: adding it rounds to an integer.
+    const LN2_HI: f64 = 6.931_471_803_691_238_164_9e-1;
+    const LN2_LO: f64 = 1.908_214_929_270_587_700_02e-10;
+    const C: [f64; 14] = [
+        1.0,
+        1.0,
+        1.0 / 2.0,
+        1.0 / 6.0,
+        1.0 / 24.0,
+        1.0 / 120.0,
+        1.0 / 720.0,
+        1.0 / 5040.0,
+        1.0 / 40320.0,
+        1.0 / 362880.0,
+        1.0 / 3628800.0,
+        1.0 / 39916800.0,
+        1.0 / 479001600.0,
+        1.0 / 6227020800.0,
+    ];
+    let n = (x * std::f64::consts::LOG2_E + SHIFT) - SHIFT;
+    let r = (x - n * LN2_HI) - n * LN2_LO;
+    let r2 = r * r;
+    let r4 = r2 * r2;
+    let r8 = r4 * r4;
+    let q0 = (C[0] + C[1] * r) + (C[2] + C[3] * r) * r2;
+    let q1 = (C[4] + C[5] * r) + (C[6] + C[7] * r) * r2;
+    let q2 = (C[8] + C[9] * r) + (C[10] + C[11] * r) * r2;
+    let q3 = C[12] + C[13] * r;
+    let p = (q0 + q1 * r4) + (q2 + q3 * r4) * r8;
+    // n is in [-1021, 1023]: 2^n is a normal number.
+    p * f64::from_bits(((n as i64 + 1023) as u64) << 52)
 }
 
 /// Adds `gd2 * d(d2)/d(vertex NDC)` to `gv` (the closest parameter `t` is optimal or at a
@@ -503,5 +673,108 @@ mod tests {
             }
         }
         assert!(inside_seen > 100, "{inside_seen}");
+    }
+
+    /// [`exp`] within 2 ulp of `f64::exp` over the whole range, and exact at the edges.
+    #[test]
+    fn exp_matches_std() {
+        let mut rng = Rng::new(3);
+        for i in 0..200_000 {
+            let x = match i % 4 {
+                0 => rng.uniform(-750.0, 720.0),
+                1 => rng.uniform(-40.0, 5.0),
+                2 => rng.uniform(-1.0, 1.0),
+                _ => rng.uniform(-1e-6, 1e-6),
+            };
+            let (a, b) = (exp(x), x.exp());
+            assert!(
+                a == b || (a - b).abs() <= 2.0 * f64::EPSILON * b,
+                "exp({x}) = {a}, std {b}"
+            );
+        }
+        assert_eq!(exp(0.0), 1.0);
+        assert_eq!(exp(-800.0), 0.0);
+        assert_eq!(exp(f64::NEG_INFINITY), 0.0);
+        assert!(exp(f64::NAN).is_nan());
+    }
+
+    /// [`FaceGeom::closest_inside`] against the exact closest point for inside points.
+    #[test]
+    fn closest_inside_matches_closest() {
+        let mut rng = Rng::new(11);
+        let mut seen = 0;
+        while seen < 2000 {
+            let v: Vec<[f64; 2]> = (0..3)
+                .map(|_| [rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)])
+                .collect();
+            let g = FaceGeom::new(&v, &[1.0, 1.0, 1.0], &[0, 1, 2]);
+            let p = [rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)];
+            let w = g.bary(p);
+            if !(w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0) {
+                continue;
+            }
+            seen += 1;
+            let (a, b) = (g.closest_inside(p, &w), g.closest(p));
+            assert!((a.d2 - b.d2).abs() <= 1e-12 * (1e-12 + b.d2), "{a:?} {b:?}");
+            if (a.d2 - b.d2).abs() <= 1e-15 * b.d2 && a.edge == b.edge {
+                assert!((a.t - b.t).abs() <= 1e-9, "{a:?} {b:?}");
+            }
+        }
+    }
+
+    /// [`FaceSpan::row`] keeps every pixel of a face's box that passes the outside bound (or
+    /// is inside), so the spans drop no pair the whole box would keep; and it is not much
+    /// wider than those pixels.
+    #[test]
+    fn row_spans_cover_every_kept_pixel() {
+        let mut rng = Rng::new(5);
+        let (w, h) = (61, 47);
+        let (mut kept, mut visited) = (0usize, 0usize);
+        for case in 0..300 {
+            let n = 4;
+            let ndc: Vec<[f64; 2]> = (0..3 * n)
+                .map(|_| [rng.uniform(-1.3, 1.3), rng.uniform(-1.3, 1.3)])
+                .collect();
+            let mut ndc = ndc;
+            if case % 7 == 0 {
+                // An axis-aligned edge (the row-constant case of the span).
+                ndc[1][1] = ndc[0][1];
+                ndc[4][0] = ndc[3][0];
+            }
+            let depth = vec![2.0; 3 * n];
+            let faces: Vec<[u32; 3]> = (0..n as u32)
+                .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+                .collect();
+            let dmax = [0.0, 0.01, 0.05, 0.3][case % 4];
+            let bins = TileBins::new(&ndc, &depth, &faces, w, h, dmax, false);
+            for fi in 0..n {
+                let r = bins.rects[fi];
+                if r[0] > r[1] {
+                    continue;
+                }
+                let g = &bins.geoms[fi];
+                let span = bins.span(fi);
+                let (c0, c1) = (r[0] as usize, r[1] as usize);
+                for row in r[2] as usize..=r[3] as usize {
+                    let sp = span.row(bins.py[row], c0, c1);
+                    for col in c0..=c1 {
+                        let wb = g.bary([bins.px[col], bins.py[row]]);
+                        let inside = wb.iter().all(|&x| x >= 0.0);
+                        if inside || g.outside_d2_bound(&wb) <= dmax * dmax {
+                            kept += 1;
+                            let (a, b) = sp.expect("a kept pixel in a row without a span");
+                            assert!((a..=b).contains(&col), "{col} not in {a}..={b}");
+                        }
+                    }
+                    if let Some((a, b)) = sp {
+                        visited += b + 1 - a;
+                    }
+                }
+            }
+        }
+        assert!(
+            kept > 10_000 && visited < kept + kept / 2,
+            "{kept} {visited}"
+        );
     }
 }
