@@ -37,7 +37,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory, closest_backward, exp, ndc_to_clip, project, FaceGeom, TileBins, TILE,
+    check_memory, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom, TileBins, TILE,
 };
 use crate::error::RenderError;
 
@@ -255,10 +255,10 @@ struct SoftRasOp {
     prep: Option<Arc<Prep>>,
 }
 
-/// `(sigmoid(x), sigmoid(-x))` from one exponential, both to full relative precision.
+/// `(sigmoid(x), sigmoid(-x))` from one exponential `e = exp(-|x|)`, both to full relative
+/// precision.
 #[inline(always)]
-fn sigmoid_pair(x: f64) -> (f64, f64) {
-    let e = exp(-x.abs());
+fn sigmoid_from(x: f64, e: f64) -> (f64, f64) {
     let r = 1.0 / (1.0 + e);
     if x >= 0.0 {
         (r, e * r)
@@ -295,10 +295,13 @@ fn prepare<T: Real>(
     }
 }
 
+/// Pairs the backward evaluates together, stage by stage ([`SoftRasOp::face_gradient`]).
+const BATCH: usize = 32;
+
 /// Everything of one (face, pixel) pair that depends on the face's geometry and the pixel
 /// only: the forward's first pass and the backward evaluate it with the same operations, so
 /// they keep the same pairs and see the same values.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Default)]
 struct Pair {
     /// `x = s d^2 / sigma`.
     x: f64,
@@ -310,6 +313,9 @@ struct Pair {
     sumwc: f64,
     /// View depth `1 / sum_k wn_k / z_k`.
     z: f64,
+    /// The closest boundary point, for a centre outside the triangle (inside, the backward
+    /// takes the foot on the nearest edge, [`FaceGeom::closest_inside`]).
+    closest: Closest,
 }
 
 impl SoftRasOp {
@@ -320,26 +326,35 @@ impl SoftRasOp {
     #[inline(always)]
     fn pair(g: &FaceGeom, p: [f64; 2], inv_sigma: f64, cut2: f64) -> Option<Pair> {
         let w = g.bary(p);
+        let mut closest = Closest::default();
         let x = if w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0 {
             g.inside_d2(&w) * inv_sigma
         } else {
             if g.outside_d2_bound(&w) > cut2 {
                 return None;
             }
-            let d2 = g.closest(p).d2;
-            if d2 > cut2 {
+            closest = g.closest(p);
+            if closest.d2 > cut2 {
                 return None;
             }
-            -d2 * inv_sigma
+            -closest.d2 * inv_sigma
         };
         let wc = w.map(|x| x.clamp(0.0, 1.0));
         let sumwc = wc[0] + wc[1] + wc[2];
         if !(sumwc > 0.0 && sumwc.is_finite()) {
             return None;
         }
-        let wn = wc.map(|x| x / sumwc);
+        let inv = 1.0 / sumwc;
+        let wn = wc.map(|x| x * inv);
         let z = 1.0 / (wn[0] * g.inv_d[0] + wn[1] * g.inv_d[1] + wn[2] * g.inv_d[2]);
-        Some(Pair { x, w, wn, sumwc, z })
+        Some(Pair {
+            x,
+            w,
+            wn,
+            sumwc,
+            z,
+            closest,
+        })
     }
 
     /// Interpolation weights of a pair's vertex attributes: `wn`, or perspective-correct
@@ -383,6 +398,9 @@ impl SoftRasOp {
         sc.m.fill(s.eps);
         sc.prod.fill(1.0);
         // Pass 1: pairs, m and P.
+        let mut qs = [Pair::default(); TILE];
+        let mut lps = [0usize; TILE];
+        let mut e_sig = [0.0f64; TILE];
         for &fi in tf.iter() {
             sc.runs.push(sc.recs.len());
             let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
@@ -397,12 +415,22 @@ impl SoftRasOp {
                     continue;
                 };
                 let lbase = (row - r_base) * TILE;
+                // The row's pairs (at most TILE) stage by stage, as in the backward: geometry,
+                // exponentials, then the accumulation, so independent pairs overlap.
+                let mut n = 0;
                 for col in a..=b {
-                    let Some(q) = Self::pair(g, [bins.px[col], py], inv_sigma, cut2) else {
-                        continue;
-                    };
-                    let lp = lbase + col - c_base;
-                    let (dd, omd) = sigmoid_pair(q.x);
+                    if let Some(q) = Self::pair(g, [bins.px[col], py], inv_sigma, cut2) {
+                        qs[n] = q;
+                        lps[n] = lbase + col - c_base;
+                        n += 1;
+                    }
+                }
+                for i in 0..n {
+                    e_sig[i] = exp(-qs[i].x.abs());
+                }
+                for i in 0..n {
+                    let (q, lp) = (&qs[i], lps[i]);
+                    let (dd, omd) = sigmoid_from(q.x, e_sig[i]);
                     let zn = 1.0 - (q.z - s.near) * zscale;
                     sc.count[lp] += 1;
                     sc.m[lp] = sc.m[lp].max(zn);
@@ -411,7 +439,7 @@ impl SoftRasOp {
                         lp: lp as u32,
                         dd,
                         zn,
-                        wp: self.attr_weights(g, &q),
+                        wp: self.attr_weights(g, q),
                     });
                 }
             }
@@ -665,119 +693,145 @@ impl SoftRasOp {
             rc[3] as usize,
         );
         let span = bins.span(fi);
+        let mut qs = [Pair::default(); BATCH];
+        let mut cols = [0usize; BATCH];
+        let (mut e_sig, mut e_f) = ([0.0f64; BATCH], [0.0f64; BATCH]);
         for row in r0..=r1 {
             let py = bins.py[row];
             let Some((a, b)) = span.row(py, c0, c1c) else {
                 continue;
             };
-            for col in a..=b {
-                let pi = row * s.width + col;
-                let pbx = &pb[pi * bstride..(pi + 1) * bstride];
-                let (g, ga_prod, g_img, inv_z, m) =
-                    (&pbx[..c], pbx[c], pbx[c + 1], pbx[c + 2], pbx[c + 3]);
-                if m == f64::INFINITY {
-                    continue;
-                }
-                let p = [bins.px[col], py];
-                let Some(q) = Self::pair(geom, p, inv_sigma, cut2) else {
-                    continue;
-                };
-                let (dd, omd) = sigmoid_pair(q.x);
-                let zn = 1.0 - (q.z - s.near) * zscale;
-                let tt = (zn - m) * inv_gamma;
-                let ef = if tt < -746.0 { 0.0 } else { exp(tt) };
-                let wp = self.attr_weights(geom, &q);
-                // The blend's terms vanish with D e_f (as in the forward, which skips them).
-                let (gblend, gscale) = if dd * ef == 0.0 {
-                    (0.0, 0.0)
-                } else {
-                    // g . (a_f - I).
-                    let mut cdiff = -g_img;
-                    for ch in 0..c {
-                        let a = wp[0] * fa(0, ch) + wp[1] * fa(1, ch) + wp[2] * fa(2, ch);
-                        cdiff += g[ch] * a;
-                    }
-                    (ef * cdiff * inv_z, dd * ef * inv_z)
-                };
-                let gx = gblend * dd * omd + ga_prod * dd;
-                let g_zn = dd * gblend * inv_gamma;
-                // Coverage: x = s d2 / sigma, d2 the squared distance to the closest boundary
-                // point (for an inside point the foot on the nearest edge line).
-                let sign = if q.x >= 0.0 { 1.0 } else { -1.0 };
-                let gd2 = gx * sign * inv_sigma;
-                if gd2 != 0.0 {
-                    let cl = if q.x > 0.0 {
-                        geom.closest_inside(p, &q.w)
-                    } else {
-                        geom.closest(p)
-                    };
-                    closest_backward(&cl, gd2, &mut gv);
-                }
-                if gscale == 0.0 && g_zn == 0.0 {
-                    continue;
-                }
-                // Depth and attributes.
-                let mut gz = -g_zn * zscale;
-                let mut gwn = [0.0f64; 3];
-                if s.perspective_correct {
-                    // c = z u, u = sum_k wn_k C_k / z_k.
-                    for ch in 0..c {
-                        let gc = g[ch] * gscale;
-                        if gc == 0.0 {
-                            continue;
-                        }
-                        let ck = [fa(0, ch), fa(1, ch), fa(2, ch)];
-                        let u = q.wn[0] * ck[0] * inv_d[0]
-                            + q.wn[1] * ck[1] * inv_d[1]
-                            + q.wn[2] * ck[2] * inv_d[2];
-                        gz += gc * u;
-                        let gu = q.z * gc;
-                        for k in 0..3 {
-                            gwn[k] += gu * ck[k] * inv_d[k];
-                            acc[k * stride + 4 + ch] += gu * q.wn[k] * inv_d[k];
-                            gdep[k] -= gu * ck[k] * q.wn[k] * inv_d[k] * inv_d[k];
-                        }
-                    }
-                } else {
-                    for ch in 0..c {
-                        let gc = g[ch] * gscale;
-                        if gc == 0.0 {
-                            continue;
-                        }
-                        for k in 0..3 {
-                            gwn[k] += gc * fa(k, ch);
-                            acc[k * stride + 4 + ch] += gc * q.wn[k];
-                        }
-                    }
-                }
-                let gzinv = -q.z * q.z * gz;
-                for k in 0..3 {
-                    gwn[k] += gzinv * inv_d[k];
-                    gdep[k] -= gzinv * q.wn[k] * inv_d[k] * inv_d[k];
-                }
-                // Clip-and-renormalise, then raw barycentrics w_k = n_k / sum n.
-                let dot = gwn[0] * q.wn[0] + gwn[1] * q.wn[1] + gwn[2] * q.wn[2];
-                let inv_sumwc = 1.0 / q.sumwc;
-                let mut gw = [0.0; 3];
-                for k in 0..3 {
-                    if q.w[k] > 0.0 && q.w[k] < 1.0 {
-                        gw[k] = (gwn[k] - dot) * inv_sumwc;
-                    }
-                }
-                let dot2 = gw[0] * q.w[0] + gw[1] * q.w[1] + gw[2] * q.w[2];
-                for k in 0..3 {
-                    let gn = (gw[k] - dot2) * inv_area;
-                    if gn == 0.0 {
+            // In batches of up to BATCH kept pairs: first their geometry, then their two
+            // exponentials, then the chain rule, so that the long dependency chains of
+            // independent pairs overlap instead of running one after another.
+            let mut next = a;
+            while next <= b {
+                let mut n = 0;
+                while next <= b && n < BATCH {
+                    let col = next;
+                    next += 1;
+                    let pi = row * s.width + col;
+                    if pb[pi * bstride + c + 3] == f64::INFINITY {
                         continue;
                     }
-                    let (i, j) = ((k + 1) % 3, (k + 2) % 3);
-                    let a = [v[i][0] - p[0], v[i][1] - p[1]];
-                    let b = [v[j][0] - p[0], v[j][1] - p[1]];
-                    // n_k = cross(a, b).
-                    gv[i][0] += gn * b[1];
-                    gv[i][1] -= gn * b[0];
-                    gv[j][0] -= gn * a[1];
-                    gv[j][1] += gn * a[0];
+                    let p = [bins.px[col], py];
+                    if let Some(q) = Self::pair(geom, p, inv_sigma, cut2) {
+                        qs[n] = q;
+                        cols[n] = col;
+                        n += 1;
+                    }
+                }
+                for i in 0..n {
+                    let pi = row * s.width + cols[i];
+                    let m = pb[pi * bstride + c + 3];
+                    let zn = 1.0 - (qs[i].z - s.near) * zscale;
+                    let tt = (zn - m) * inv_gamma;
+                    e_sig[i] = exp(-qs[i].x.abs());
+                    e_f[i] = if tt < -746.0 { 0.0 } else { exp(tt) };
+                }
+                for i in 0..n {
+                    let (q, col) = (&qs[i], cols[i]);
+                    let pi = row * s.width + col;
+                    let pbx = &pb[pi * bstride..(pi + 1) * bstride];
+                    let (g, ga_prod, g_img, inv_z) = (&pbx[..c], pbx[c], pbx[c + 1], pbx[c + 2]);
+                    let p = [bins.px[col], py];
+                    let (dd, omd) = sigmoid_from(q.x, e_sig[i]);
+                    let ef = e_f[i];
+                    let wp = self.attr_weights(geom, &q);
+                    // The blend's terms vanish with D e_f (as in the forward, which skips them).
+                    let (gblend, gscale) = if dd * ef == 0.0 {
+                        (0.0, 0.0)
+                    } else {
+                        // g . (a_f - I).
+                        let mut cdiff = -g_img;
+                        for ch in 0..c {
+                            let a = wp[0] * fa(0, ch) + wp[1] * fa(1, ch) + wp[2] * fa(2, ch);
+                            cdiff += g[ch] * a;
+                        }
+                        (ef * cdiff * inv_z, dd * ef * inv_z)
+                    };
+                    let gx = gblend * dd * omd + ga_prod * dd;
+                    let g_zn = dd * gblend * inv_gamma;
+                    // Coverage: x = s d2 / sigma, d2 the squared distance to the closest boundary
+                    // point (for an inside point the foot on the nearest edge line).
+                    let sign = if q.x >= 0.0 { 1.0 } else { -1.0 };
+                    let gd2 = gx * sign * inv_sigma;
+                    if gd2 != 0.0 {
+                        let cl = if q.x > 0.0 {
+                            geom.closest_inside(p, &q.w)
+                        } else if q.x < 0.0 {
+                            q.closest
+                        } else {
+                            geom.closest(p)
+                        };
+                        closest_backward(&cl, gd2, &mut gv);
+                    }
+                    if gscale == 0.0 && g_zn == 0.0 {
+                        continue;
+                    }
+                    // Depth and attributes.
+                    let mut gz = -g_zn * zscale;
+                    let mut gwn = [0.0f64; 3];
+                    if s.perspective_correct {
+                        // c = z u, u = sum_k wn_k C_k / z_k.
+                        for ch in 0..c {
+                            let gc = g[ch] * gscale;
+                            if gc == 0.0 {
+                                continue;
+                            }
+                            let ck = [fa(0, ch), fa(1, ch), fa(2, ch)];
+                            let u = q.wn[0] * ck[0] * inv_d[0]
+                                + q.wn[1] * ck[1] * inv_d[1]
+                                + q.wn[2] * ck[2] * inv_d[2];
+                            gz += gc * u;
+                            let gu = q.z * gc;
+                            for k in 0..3 {
+                                gwn[k] += gu * ck[k] * inv_d[k];
+                                acc[k * stride + 4 + ch] += gu * q.wn[k] * inv_d[k];
+                                gdep[k] -= gu * ck[k] * q.wn[k] * inv_d[k] * inv_d[k];
+                            }
+                        }
+                    } else {
+                        for ch in 0..c {
+                            let gc = g[ch] * gscale;
+                            if gc == 0.0 {
+                                continue;
+                            }
+                            for k in 0..3 {
+                                gwn[k] += gc * fa(k, ch);
+                                acc[k * stride + 4 + ch] += gc * q.wn[k];
+                            }
+                        }
+                    }
+                    let gzinv = -q.z * q.z * gz;
+                    for k in 0..3 {
+                        gwn[k] += gzinv * inv_d[k];
+                        gdep[k] -= gzinv * q.wn[k] * inv_d[k] * inv_d[k];
+                    }
+                    // Clip-and-renormalise, then raw barycentrics w_k = n_k / sum n.
+                    let dot = gwn[0] * q.wn[0] + gwn[1] * q.wn[1] + gwn[2] * q.wn[2];
+                    let inv_sumwc = 1.0 / q.sumwc;
+                    let mut gw = [0.0; 3];
+                    for k in 0..3 {
+                        if q.w[k] > 0.0 && q.w[k] < 1.0 {
+                            gw[k] = (gwn[k] - dot) * inv_sumwc;
+                        }
+                    }
+                    let dot2 = gw[0] * q.w[0] + gw[1] * q.w[1] + gw[2] * q.w[2];
+                    for k in 0..3 {
+                        let gn = (gw[k] - dot2) * inv_area;
+                        if gn == 0.0 {
+                            continue;
+                        }
+                        let (i, j) = ((k + 1) % 3, (k + 2) % 3);
+                        let a = [v[i][0] - p[0], v[i][1] - p[1]];
+                        let b = [v[j][0] - p[0], v[j][1] - p[1]];
+                        // n_k = cross(a, b).
+                        gv[i][0] += gn * b[1];
+                        gv[i][1] -= gn * b[0];
+                        gv[j][0] -= gn * a[1];
+                        gv[j][1] += gn * a[0];
+                    }
                 }
             }
         }
