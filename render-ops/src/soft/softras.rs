@@ -737,7 +737,7 @@ impl SoftRasOp {
                     let p = [bins.px[col], py];
                     let (dd, omd) = sigmoid_from(q.x, e_sig[i]);
                     let ef = e_f[i];
-                    let wp = self.attr_weights(geom, &q);
+                    let wp = self.attr_weights(geom, q);
                     // The blend's terms vanish with D e_f (as in the forward, which skips them).
                     let (gblend, gscale) = if dd * ef == 0.0 {
                         (0.0, 0.0)
