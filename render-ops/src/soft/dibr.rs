@@ -29,8 +29,11 @@
 //! silhouette gradient therefore flows through the alpha channel only; losses on silhouettes
 //! use alpha.
 //!
-//! Parallel over tiles; the backward keeps per-tile, per-face accumulators and reduces them in
-//! tile order, so results are bit-identical for any thread count.
+//! The forward runs in parallel over tiles (each face over the row spans of its cut-off region,
+//! [`super::common::FaceSpan`]) and keeps each pixel's `P = prod_j f_j`; the backward runs in
+//! parallel over faces, each summing its own pairs with `prod_{k != j} f_k = P / f_j` (recomputed
+//! from the other faces where `P` is subnormal or 0), and adds the per-face sums to the vertices
+//! in face order, so results are bit-identical for any thread count.
 
 use std::sync::Arc;
 
