@@ -10,9 +10,10 @@ use crate::raster::{RasterError, MAX_FRAGMENT_SLOTS};
 
 /// Largest number of (tile, face) entries the soft methods' per-tile face lists may hold: a
 /// face counts once for every 16 x 16 pixel tile its screen box, expanded by the coverage
-/// cut-off, touches. Each entry is a 4-byte face id in the forward and a `3 x (4 + C)` `f64`
-/// accumulator in the SoftRas backward (`3 x 4` for DIB-R), about 2.8 GB for RGB at the limit.
-/// A fine mesh of small faces needs a few entries per face; a huge cut-off (e.g. SoftRas
+/// cut-off, touches. Each entry is a 4-byte face id (64 MB at the limit); the backwards keep
+/// one accumulator per face (`3 x (4 + C)` `f64` for SoftRas, `3 x 3` for DIB-R), not per
+/// entry. The forwards' per-tile scratch holds the kept (face, pixel) pairs of one tile at a
+/// time (48 bytes each for SoftRas, 8 for DIB-R) per thread. A fine mesh of small faces needs a few entries per face; a huge cut-off (e.g. SoftRas
 /// `threshold` 0, which makes every face reach every pixel) multiplies faces by tiles and is
 /// refused with [`RasterError::TooLarge`] before anything is allocated.
 pub const MAX_SOFT_BIN_ENTRIES: usize = 1 << 24;
@@ -61,6 +62,11 @@ pub(crate) struct TileBins {
     pub px: Vec<f64>,
     /// NDC y of every pixel row's centre.
     pub py: Vec<f64>,
+    /// `px[col]` is `px0 + dpx * col` up to rounding (for [`TileBins::span`]).
+    px0: f64,
+    dpx: f64,
+    /// Cut-off distance the boxes were expanded by (NDC units).
+    dmax: f64,
 }
 
 impl TileBins {
@@ -113,7 +119,62 @@ impl TileBins {
             geoms,
             px,
             py,
+            px0: 1.0 / width as f64 - 1.0,
+            dpx: 2.0 / width as f64,
+            dmax,
         }
+    }
+
+    /// The row spans of face `fi`'s cut-off region ([`FaceSpan`]).
+    #[inline]
+    pub fn span(&self, fi: usize) -> FaceSpan {
+        let g = &self.geoms[fi];
+        let ox = self.px0 - g.v[0][0];
+        let mut sp = FaceSpan {
+            a: [0.0; 3],
+            by: [0.0; 3],
+            inv_s: [0.0; 3],
+        };
+        for k in 0..3 {
+            let b = g.bw[k];
+            // w_k(col, row) = b0 + b1 (px0 + dpx col - v0x) + b2 (py - v0y), needed
+            // >= lim = -dmax / alt_k; the margin covers the rounding of both evaluations.
+            let lim = -self.dmax / g.alt[k];
+            let err = 1e-10
+                * (b[0].abs()
+                    + b[1].abs() * (1.0 + g.v[0][0].abs())
+                    + b[2].abs() * (1.0 + g.v[0][1].abs())
+                    + lim.abs());
+            let s = b[1] * self.dpx;
+            // need(py) = lim - err - w_k(col 0) = a - by py; col >= need / s when s > 0.
+            sp.a[k] = lim - err - (b[0] + b[1] * ox - b[2] * g.v[0][1]);
+            sp.by[k] = b[2];
+            sp.inv_s[k] = 1.0 / s;
+        }
+        sp
+    }
+
+    /// Faces that have a box, in the order of the tile holding their box's first pixel
+    /// (row-major tiles; face order within a tile), so that faces visited one after another
+    /// touch nearby pixels.
+    pub fn spatial_order(&self) -> Vec<u32> {
+        let home = |r: &[i64; 4]| (r[2] as usize / TILE) * self.tiles_x + r[0] as usize / TILE;
+        let mut start = vec![0usize; self.tiles.len() + 1];
+        for r in self.rects.iter().filter(|r| r[0] <= r[1]) {
+            start[home(r) + 1] += 1;
+        }
+        for t in 0..self.tiles.len() {
+            start[t + 1] += start[t];
+        }
+        let mut order = vec![0u32; start[self.tiles.len()]];
+        for (fi, r) in self.rects.iter().enumerate() {
+            if r[0] <= r[1] {
+                let h = home(r);
+                order[start[h]] = fi as u32;
+                start[h] += 1;
+            }
+        }
+        order
     }
 
     /// The part of face `fi`'s box inside tile `t` as (c0, c1, r0, r1), inclusive, in image
@@ -133,6 +194,42 @@ impl TileBins {
         let r0 = (rc[2] as usize).max(ty * TILE);
         let r1 = (rc[3] as usize).min((ty * TILE + TILE).min(height) - 1);
         (rc[0] <= rc[1] && c0 <= c1 && r0 <= r1).then_some([c0, c1, r0, r1])
+    }
+}
+
+/// The row spans of one face's cut-off region: the columns of a row that may pass the face's
+/// outside bound ([`FaceGeom::outside_d2_bound`] `<= dmax^2`, `dmax` the cut-off the bins were
+/// built with), i.e. the pixels no farther than `dmax` beyond any of the three edge lines,
+/// `w_k >= -dmax / alt_k` for every `k`. Each `w_k` is affine along a row, so this is one
+/// interval (the scanline of the triangle dilated along its edge normals). It is widened by a
+/// relative margin and one column on each side, so the per-pixel test alone decides which
+/// pixels are kept: the set of kept pairs is that of the whole box.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct FaceSpan {
+    a: [f64; 3],
+    by: [f64; 3],
+    inv_s: [f64; 3],
+}
+
+impl FaceSpan {
+    /// The columns within `[c0, c1]` of the row whose centres have NDC y `py`, or `None`.
+    #[inline(always)]
+    pub fn row(&self, py: f64, c0: usize, c1: usize) -> Option<(usize, usize)> {
+        let (mut lo, mut hi) = (c0 as f64, c1 as f64);
+        for k in 0..3 {
+            let need = self.a[k] - self.by[k] * py;
+            let inv_s = self.inv_s[k];
+            if inv_s > 0.0 && inv_s.is_finite() {
+                lo = lo.max((need * inv_s).ceil() - 1.0);
+            } else if inv_s < 0.0 && inv_s.is_finite() {
+                hi = hi.min((need * inv_s).floor() + 1.0);
+            } else if need > 0.0 && !inv_s.is_finite() {
+                // w_k does not change along the row (s = 0, 1 / s infinite).
+                return None;
+            }
+        }
+        // NaN bounds (never expected) leave the box as it is: `max`/`min` ignore NaN.
+        (lo <= hi).then(|| (lo.max(c0 as f64) as usize, hi.min(c1 as f64) as usize))
     }
 }
 
@@ -389,6 +486,34 @@ impl FaceGeom {
         d * d
     }
 
+    /// Closest point of the boundary to an inside point `p` with barycentrics `w`: the foot on
+    /// the nearest edge line (the edge opposite the smallest `w_k alt_k`), which for a point
+    /// inside the triangle lies on that edge; as [`FaceGeom::closest`] up to ties.
+    #[inline(always)]
+    pub fn closest_inside(&self, p: [f64; 2], w: &[f64; 3]) -> Closest {
+        let d = [w[0] * self.alt[0], w[1] * self.alt[1], w[2] * self.alt[2]];
+        let k = if d[0] <= d[1] && d[0] <= d[2] {
+            0
+        } else if d[1] <= d[2] {
+            1
+        } else {
+            2
+        };
+        // Edge `e` runs from vertex k + 1 to vertex k + 2.
+        let e = (k + 1) % 3;
+        let (a, b) = (self.v[e], self.v[(e + 1) % 3]);
+        let ed = [b[0] - a[0], b[1] - a[1]];
+        let ap = [p[0] - a[0], p[1] - a[1]];
+        let t = ((ap[0] * ed[0] + ap[1] * ed[1]) * self.inv_ee[e]).clamp(0.0, 1.0);
+        let r = [ap[0] - t * ed[0], ap[1] - t * ed[1]];
+        Closest {
+            d2: r[0] * r[0] + r[1] * r[1],
+            edge: e as u8,
+            t,
+            r,
+        }
+    }
+
     /// Closest point of the triangle's boundary to `p`, as [`closest_on_boundary`] (first edge
     /// wins ties) with the edges' inverse squared lengths precomputed.
     #[inline]
@@ -416,6 +541,99 @@ impl FaceGeom {
         }
         best
     }
+}
+
+/// `2^(j / 64)`, `j = 0..64`, correctly rounded (for [`exp`]).
+const EXP2_64THS: [f64; 64] = [
+    f64::from_bits(0x3ff0000000000000),
+    f64::from_bits(0x3ff02c9a3e778061),
+    f64::from_bits(0x3ff059b0d3158574),
+    f64::from_bits(0x3ff0874518759bc8),
+    f64::from_bits(0x3ff0b5586cf9890f),
+    f64::from_bits(0x3ff0e3ec32d3d1a2),
+    f64::from_bits(0x3ff11301d0125b51),
+    f64::from_bits(0x3ff1429aaea92de0),
+    f64::from_bits(0x3ff172b83c7d517b),
+    f64::from_bits(0x3ff1a35beb6fcb75),
+    f64::from_bits(0x3ff1d4873168b9aa),
+    f64::from_bits(0x3ff2063b88628cd6),
+    f64::from_bits(0x3ff2387a6e756238),
+    f64::from_bits(0x3ff26b4565e27cdd),
+    f64::from_bits(0x3ff29e9df51fdee1),
+    f64::from_bits(0x3ff2d285a6e4030b),
+    f64::from_bits(0x3ff306fe0a31b715),
+    f64::from_bits(0x3ff33c08b26416ff),
+    f64::from_bits(0x3ff371a7373aa9cb),
+    f64::from_bits(0x3ff3a7db34e59ff7),
+    f64::from_bits(0x3ff3dea64c123422),
+    f64::from_bits(0x3ff4160a21f72e2a),
+    f64::from_bits(0x3ff44e086061892d),
+    f64::from_bits(0x3ff486a2b5c13cd0),
+    f64::from_bits(0x3ff4bfdad5362a27),
+    f64::from_bits(0x3ff4f9b2769d2ca7),
+    f64::from_bits(0x3ff5342b569d4f82),
+    f64::from_bits(0x3ff56f4736b527da),
+    f64::from_bits(0x3ff5ab07dd485429),
+    f64::from_bits(0x3ff5e76f15ad2148),
+    f64::from_bits(0x3ff6247eb03a5585),
+    f64::from_bits(0x3ff6623882552225),
+    f64::from_bits(0x3ff6a09e667f3bcd),
+    f64::from_bits(0x3ff6dfb23c651a2f),
+    f64::from_bits(0x3ff71f75e8ec5f74),
+    f64::from_bits(0x3ff75feb564267c9),
+    f64::from_bits(0x3ff7a11473eb0187),
+    f64::from_bits(0x3ff7e2f336cf4e62),
+    f64::from_bits(0x3ff82589994cce13),
+    f64::from_bits(0x3ff868d99b4492ed),
+    f64::from_bits(0x3ff8ace5422aa0db),
+    f64::from_bits(0x3ff8f1ae99157736),
+    f64::from_bits(0x3ff93737b0cdc5e5),
+    f64::from_bits(0x3ff97d829fde4e50),
+    f64::from_bits(0x3ff9c49182a3f090),
+    f64::from_bits(0x3ffa0c667b5de565),
+    f64::from_bits(0x3ffa5503b23e255d),
+    f64::from_bits(0x3ffa9e6b5579fdbf),
+    f64::from_bits(0x3ffae89f995ad3ad),
+    f64::from_bits(0x3ffb33a2b84f15fb),
+    f64::from_bits(0x3ffb7f76f2fb5e47),
+    f64::from_bits(0x3ffbcc1e904bc1d2),
+    f64::from_bits(0x3ffc199bdd85529c),
+    f64::from_bits(0x3ffc67f12e57d14b),
+    f64::from_bits(0x3ffcb720dcef9069),
+    f64::from_bits(0x3ffd072d4a07897c),
+    f64::from_bits(0x3ffd5818dcfba487),
+    f64::from_bits(0x3ffda9e603db3285),
+    f64::from_bits(0x3ffdfc97337b9b5f),
+    f64::from_bits(0x3ffe502ee78b3ff6),
+    f64::from_bits(0x3ffea4afa2a490da),
+    f64::from_bits(0x3ffefa1bee615a27),
+    f64::from_bits(0x3fff50765b6e4540),
+    f64::from_bits(0x3fffa7c1819e90d8),
+];
+
+/// `e^x` without a libm call, for the soft kernels' per-pair exponentials (the sigmoid of
+/// SoftRas eq. (1), the depth weights of eq. (6), DIB-R's `e^{-x}`), inlined into their loops.
+/// Table-driven: `x = (64 m + j) ln(2) / 64 + r` with `|r| <= ln(2) / 128` (the reduction
+/// constant in two parts, the high one exact for every product that occurs), `e^x = 2^m
+/// 2^(j/64) e^r`, `e^r - 1` by its Taylor polynomial of degree 5 (truncation below `4e-17`
+/// relative); within 2 ulp of the exact value (tested against `f64::exp`). Outside `(-708,
+/// 709)` (subnormal or overflowing results, NaN) it defers to `f64::exp`.
+#[inline(always)]
+pub(crate) fn exp(x: f64) -> f64 {
+    if !(x > -708.0 && x < 709.0) {
+        return x.exp();
+    }
+    const SHIFT: f64 = 6755399441055744.0; // 1.5 * 2^52: adding it rounds to an integer.
+    const INV_L: f64 = 92.332_482_616_893_66; // 64 / ln 2
+    const L_HI: f64 = 0.010_830_424_689_629_58; // ln 2 / 64, 31 significant bits
+    const L_LO: f64 = 6.619_564_634_077_006e-12;
+    let n = (x * INV_L + SHIFT) - SHIFT;
+    let r = (x - n * L_HI) - n * L_LO;
+    let q = r + r * r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0))));
+    let ni = n as i64;
+    let t = EXP2_64THS[(ni & 63) as usize];
+    // m = floor(n / 64) is in [-1022, 1023]: 2^m is a normal number.
+    (t + t * q) * f64::from_bits((((ni >> 6) + 1023) as u64) << 52)
 }
 
 /// Adds `gd2 * d(d2)/d(vertex NDC)` to `gv` (the closest parameter `t` is optimal or at a
@@ -503,5 +721,108 @@ mod tests {
             }
         }
         assert!(inside_seen > 100, "{inside_seen}");
+    }
+
+    /// [`exp`] within 2 ulp of `f64::exp` over the whole range, and exact at the edges.
+    #[test]
+    fn exp_matches_std() {
+        let mut rng = Rng::new(3);
+        for i in 0..200_000 {
+            let x = match i % 4 {
+                0 => rng.uniform(-750.0, 720.0),
+                1 => rng.uniform(-40.0, 5.0),
+                2 => rng.uniform(-1.0, 1.0),
+                _ => rng.uniform(-1e-6, 1e-6),
+            };
+            let (a, b) = (exp(x), x.exp());
+            assert!(
+                a == b || (a - b).abs() <= 2.0 * f64::EPSILON * b,
+                "exp({x}) = {a}, std {b}"
+            );
+        }
+        assert_eq!(exp(0.0), 1.0);
+        assert_eq!(exp(-800.0), 0.0);
+        assert_eq!(exp(f64::NEG_INFINITY), 0.0);
+        assert!(exp(f64::NAN).is_nan());
+    }
+
+    /// [`FaceGeom::closest_inside`] against the exact closest point for inside points.
+    #[test]
+    fn closest_inside_matches_closest() {
+        let mut rng = Rng::new(11);
+        let mut seen = 0;
+        while seen < 2000 {
+            let v: Vec<[f64; 2]> = (0..3)
+                .map(|_| [rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)])
+                .collect();
+            let g = FaceGeom::new(&v, &[1.0, 1.0, 1.0], &[0, 1, 2]);
+            let p = [rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)];
+            let w = g.bary(p);
+            if !(w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0) {
+                continue;
+            }
+            seen += 1;
+            let (a, b) = (g.closest_inside(p, &w), g.closest(p));
+            assert!((a.d2 - b.d2).abs() <= 1e-12 * (1e-12 + b.d2), "{a:?} {b:?}");
+            if (a.d2 - b.d2).abs() <= 1e-15 * b.d2 && a.edge == b.edge {
+                assert!((a.t - b.t).abs() <= 1e-9, "{a:?} {b:?}");
+            }
+        }
+    }
+
+    /// [`FaceSpan::row`] keeps every pixel of a face's box that passes the outside bound (or
+    /// is inside), so the spans drop no pair the whole box would keep; and it is not much
+    /// wider than those pixels.
+    #[test]
+    fn row_spans_cover_every_kept_pixel() {
+        let mut rng = Rng::new(5);
+        let (w, h) = (61, 47);
+        let (mut kept, mut visited) = (0usize, 0usize);
+        for case in 0..300 {
+            let n = 4;
+            let ndc: Vec<[f64; 2]> = (0..3 * n)
+                .map(|_| [rng.uniform(-1.3, 1.3), rng.uniform(-1.3, 1.3)])
+                .collect();
+            let mut ndc = ndc;
+            if case % 7 == 0 {
+                // An axis-aligned edge (the row-constant case of the span).
+                ndc[1][1] = ndc[0][1];
+                ndc[4][0] = ndc[3][0];
+            }
+            let depth = vec![2.0; 3 * n];
+            let faces: Vec<[u32; 3]> = (0..n as u32)
+                .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+                .collect();
+            let dmax = [0.0, 0.01, 0.05, 0.3][case % 4];
+            let bins = TileBins::new(&ndc, &depth, &faces, w, h, dmax, false);
+            for fi in 0..n {
+                let r = bins.rects[fi];
+                if r[0] > r[1] {
+                    continue;
+                }
+                let g = &bins.geoms[fi];
+                let span = bins.span(fi);
+                let (c0, c1) = (r[0] as usize, r[1] as usize);
+                for row in r[2] as usize..=r[3] as usize {
+                    let sp = span.row(bins.py[row], c0, c1);
+                    for col in c0..=c1 {
+                        let wb = g.bary([bins.px[col], bins.py[row]]);
+                        let inside = wb.iter().all(|&x| x >= 0.0);
+                        if inside || g.outside_d2_bound(&wb) <= dmax * dmax {
+                            kept += 1;
+                            let (a, b) = sp.expect("a kept pixel in a row without a span");
+                            assert!((a..=b).contains(&col), "{col} not in {a}..={b}");
+                        }
+                    }
+                    if let Some((a, b)) = sp {
+                        visited += b + 1 - a;
+                    }
+                }
+            }
+        }
+        assert!(
+            kept > 10_000 && visited < kept + kept / 2,
+            "{kept} {visited}"
+        );
     }
 }

@@ -29,8 +29,11 @@
 //! silhouette gradient therefore flows through the alpha channel only; losses on silhouettes
 //! use alpha.
 //!
-//! Parallel over tiles; the backward keeps per-tile, per-face accumulators and reduces them in
-//! tile order, so results are bit-identical for any thread count.
+//! The forward runs in parallel over tiles (each face over the row spans of its cut-off region,
+//! [`super::common::FaceSpan`]) and keeps each pixel's `P = prod_j f_j`; the backward runs in
+//! parallel over faces, each summing its own pairs with `prod_{k != j} f_k = P / f_j` (recomputed
+//! from the other faces where `P` is subnormal or 0), and adds the per-face sums to the vertices
+//! in face order, so results are bit-identical for any thread count.
 
 use std::sync::Arc;
 
@@ -39,7 +42,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory, closest_backward, ndc_to_clip, project, Closest, TileBins, TILE,
+    check_memory, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom, TileBins, TILE,
 };
 use crate::blend::blend_hard;
 use crate::error::RenderError;
@@ -275,26 +278,19 @@ struct Prep {
     ndc: Vec<[f64; 2]>,
     depth: Vec<f64>,
     bins: TileBins,
+    /// Per pixel (row-major): `P = prod_j f_j` over the nearby faces, or [`COVERED`] where a
+    /// face covers the pixel centre (alpha 1, no gradient). Written by the forward.
+    prod: Vec<f64>,
 }
 
-/// One nearby face (outside its triangle) at one pixel.
-#[derive(Clone, Copy)]
-struct Sample {
-    /// Index into the tile's face list.
-    li: u32,
-    /// `x = d^2 / delta`.
-    x: f64,
-    /// `1 - exp(-x)`, this face's factor of `1 - A`.
-    f: f64,
-    closest: Closest,
-}
+/// [`Prep::prod`] of a pixel whose centre a face covers.
+const COVERED: f64 = -1.0;
 
-/// Per-thread scratch of one tile (local row-major pixels): each pixel's samples in tile face
-/// order, and whether a face covers its centre (alpha 1, no gradient).
+/// Per-thread scratch of one tile (local row-major pixels): each pixel's factors
+/// `f_j = 1 - exp(-x_j)` in tile face order, and whether a face covers its centre.
 struct TileScratch {
-    lists: Vec<Vec<Sample>>,
+    lists: Vec<Vec<f64>>,
     covered: Vec<bool>,
-    suffix: Vec<f64>,
 }
 
 impl TileScratch {
@@ -302,7 +298,6 @@ impl TileScratch {
         Self {
             lists: (0..TILE * TILE).map(|_| Vec::new()).collect(),
             covered: vec![false; TILE * TILE],
-            suffix: Vec::new(),
         }
     }
 }
@@ -313,11 +308,40 @@ struct DibrAlphaOp {
     prep: Option<Arc<Prep>>,
 }
 
+/// What a face contributes at a pixel centre: nothing (beyond the cut-off), coverage (the
+/// centre is in or on the triangle), or the factor of a nearby face.
+enum Term {
+    None,
+    Covered,
+    Near { x: f64, q: Closest },
+}
+
 impl DibrAlphaOp {
-    /// Evaluates every face of tile `t` over its (cut-off expanded) box within the tile: marks
-    /// the pixels whose centre lies in (or on) a face, and collects for the others the faces
-    /// within the cut-off, in tile face order. Pairs beyond the cut-off are rejected by a lower
-    /// bound of their distance before the exact closest point is computed.
+    /// The term of face geometry `g` at pixel centre `p`. Pairs beyond the cut-off are
+    /// rejected by a lower bound of their distance before the exact closest point is computed.
+    #[inline(always)]
+    fn term(&self, g: &FaceGeom, p: [f64; 2], cut2: f64, xmax: f64) -> Term {
+        let w = g.bary(p);
+        if w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0 {
+            return Term::Covered;
+        }
+        if g.outside_d2_bound(&w) > cut2 {
+            return Term::None;
+        }
+        let q = g.closest(p);
+        let x = q.d2 / self.s.delta;
+        if x <= 0.0 {
+            Term::Covered
+        } else if x > xmax {
+            Term::None
+        } else {
+            Term::Near { x, q }
+        }
+    }
+
+    /// Evaluates every face of tile `t` over the row spans of its cut-off region within the
+    /// tile: marks the pixels whose centre lies in (or on) a face, and collects for the others
+    /// the factors of the faces within the cut-off, in tile face order.
     fn tile_samples(&self, prep: &Prep, t: usize, sc: &mut TileScratch) {
         let s = &self.s;
         let bins = &prep.bins;
@@ -328,60 +352,129 @@ impl DibrAlphaOp {
         let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
         let xmax = s.cutoff_x();
         let cut2 = s.cutoff_sq();
-        for (li, &fi) in bins.tiles[t].iter().enumerate() {
+        for &fi in bins.tiles[t].iter() {
             let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
             else {
                 continue;
             };
             let g = &bins.geoms[fi as usize];
+            let span = bins.span(fi as usize);
             for row in r0..=r1 {
                 let py = bins.py[row];
+                let Some((a, b)) = span.row(py, c0, c1) else {
+                    continue;
+                };
                 let lbase = (row - r_base) * TILE;
-                for col in c0..=c1 {
+                for col in a..=b {
                     let lp = lbase + col - c_base;
                     if sc.covered[lp] {
                         continue;
                     }
-                    let p = [bins.px[col], py];
-                    let w = g.bary(p);
-                    if w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0 {
-                        sc.covered[lp] = true;
-                        continue;
+                    match self.term(g, [bins.px[col], py], cut2, xmax) {
+                        Term::None => {}
+                        Term::Covered => sc.covered[lp] = true,
+                        Term::Near { x, .. } => sc.lists[lp].push(-(-x).exp_m1()),
                     }
-                    if g.outside_d2_bound(&w) > cut2 {
-                        continue;
-                    }
-                    let q = g.closest(p);
-                    let x = q.d2 / s.delta;
-                    if x <= 0.0 {
-                        sc.covered[lp] = true;
-                        continue;
-                    }
-                    if x > xmax {
-                        continue;
-                    }
-                    sc.lists[lp].push(Sample {
-                        li: li as u32,
-                        x,
-                        f: -(-x).exp_m1(),
-                        closest: q,
-                    });
                 }
             }
         }
     }
+
+    /// `prod_{k != j} f_k` at pixel (row, col) for face `fi`, by multiplying the other faces'
+    /// factors afresh (in tile face order): used where the pixel's `P` is subnormal or 0, so
+    /// that `P / f_j` would lose precision.
+    fn leave_one_out(&self, prep: &Prep, fi: usize, row: usize, col: usize) -> f64 {
+        let s = &self.s;
+        let bins = &prep.bins;
+        let t = (row / TILE) * bins.tiles_x + col / TILE;
+        let p = [bins.px[col], bins.py[row]];
+        let (xmax, cut2) = (s.cutoff_x(), s.cutoff_sq());
+        let mut prod = 1.0;
+        for &fj in bins.tiles[t].iter() {
+            let fj = fj as usize;
+            if fj == fi {
+                continue;
+            }
+            let Some([c0, c1, r0, r1]) = bins.face_in_tile(fj, t, s.width, s.height) else {
+                continue;
+            };
+            if !(c0..=c1).contains(&col) || !(r0..=r1).contains(&row) {
+                continue;
+            }
+            if let Term::Near { x, .. } = self.term(&bins.geoms[fj], p, cut2, xmax) {
+                prod *= -(-x).exp_m1();
+            }
+        }
+        prod
+    }
+
+    /// Gradient of the loss with respect to face `fi`'s clip positions, summed over the
+    /// uncovered pixels within its cut-off (`go`: the alpha gradient `[H, W]`): `acc[k * 3..]`
+    /// gets [dX, dY, dW] of corner k. Per pair `dA/dx_j = -prod_{k != j} f_k e^{-x_j}` with
+    /// `prod_{k != j} f_k = P / f_j` from the forward's `P` (exact to rounding while `P` is a
+    /// normal number, since every `f_k <= 1`; recomputed otherwise), chained through the
+    /// closest boundary point to the NDC vertices, then to clip coordinates once per face.
+    fn face_gradient(&self, prep: &Prep, fi: usize, go: &[f64], acc: &mut [f64]) {
+        let s = &self.s;
+        let bins = &prep.bins;
+        let rc = bins.rects[fi];
+        if rc[0] > rc[1] {
+            return;
+        }
+        let g = &bins.geoms[fi];
+        let (xmax, cut2) = (s.cutoff_x(), s.cutoff_sq());
+        let mut gv = [[0.0f64; 2]; 3];
+        let (c0, c1, r0, r1) = (
+            rc[0] as usize,
+            rc[1] as usize,
+            rc[2] as usize,
+            rc[3] as usize,
+        );
+        let span = bins.span(fi);
+        for row in r0..=r1 {
+            let py = bins.py[row];
+            let Some((a, b)) = span.row(py, c0, c1) else {
+                continue;
+            };
+            for col in a..=b {
+                let pi = row * s.width + col;
+                let (gp, prod) = (go[pi], prep.prod[pi]);
+                if gp == 0.0 || prod == COVERED {
+                    continue;
+                }
+                let Term::Near { x, q } = self.term(g, [bins.px[col], py], cut2, xmax) else {
+                    continue;
+                };
+                let excl = if prod >= f64::MIN_POSITIVE {
+                    prod / -(-x).exp_m1()
+                } else {
+                    self.leave_one_out(prep, fi, row, col)
+                };
+                // dA/dx_j = -prod_{k != j} (1 - e^{-x_k}) e^{-x_j}.
+                let gx = -gp * excl * exp(-x);
+                closest_backward(&q, gx / s.delta, &mut gv);
+            }
+        }
+        let f = self.faces[fi];
+        for k in 0..3 {
+            let vi = f[k] as usize;
+            let gc = ndc_to_clip(gv[k], prep.ndc[vi], prep.depth[vi]);
+            acc[k * 3..k * 3 + 3].copy_from_slice(&gc);
+        }
+    }
 }
 
-/// `A = 1 - prod_j f_j` of one uncovered pixel. Where the product is near 1 (faint coverage)
-/// the difference is taken from the sum of logs for full relative precision.
+/// `A = 1 - prod_j f_j` of one uncovered pixel, and `P = prod_j f_j`. Where the product is near
+/// 1 (faint coverage) the difference is taken from the sum of logs for full relative precision.
 #[inline]
-fn alpha_of(samples: &[Sample]) -> f64 {
-    let prod: f64 = samples.iter().map(|q| q.f).product();
-    if prod < 0.5 {
+fn alpha_of(f: &[f64]) -> (f64, f64) {
+    let prod: f64 = f.iter().product();
+    let a = if prod < 0.5 {
         1.0 - prod
     } else {
-        -samples.iter().map(|q| q.f.ln()).sum::<f64>().exp_m1()
-    }
+        -f.iter().map(|f| f.ln()).sum::<f64>().exp_m1()
+    };
+    (a, prod)
 }
 
 impl<T: Real> Op<T> for DibrAlphaOp {
@@ -401,44 +494,60 @@ impl<T: Real> Op<T> for DibrAlphaOp {
             s.cutoff_sq().sqrt(),
             s.cull_backfaces,
         );
-        let prep = Arc::new(Prep { ndc, depth, bins });
+        let mut prep = Prep {
+            ndc,
+            depth,
+            bins,
+            prod: Vec::new(),
+        };
         let (w, h) = (s.width, s.height);
         let this = &*self;
+        // Parallel over tiles, each into its own buffer (local row-major): (alpha, P) a pixel.
+        let tiles: Vec<Vec<(f64, f64)>> = {
+            let prep = &prep;
+            let bins = &prep.bins;
+            (0..bins.tiles.len())
+                .into_par_iter()
+                .map_init(TileScratch::new, |sc, t| {
+                    if bins.tiles[t].is_empty() {
+                        return Vec::new();
+                    }
+                    this.tile_samples(prep, t, sc);
+                    sc.lists
+                        .iter()
+                        .zip(&sc.covered)
+                        .map(|(l, &cov)| if cov { (1.0, COVERED) } else { alpha_of(l) })
+                        .collect()
+                })
+                .collect()
+        };
         let bins = &prep.bins;
-        // Parallel over tiles, each into its own buffer (local row-major).
-        let tiles: Vec<Vec<f64>> = (0..bins.tiles.len())
-            .into_par_iter()
-            .map_init(TileScratch::new, |sc, t| {
-                if bins.tiles[t].is_empty() {
-                    return Vec::new();
-                }
-                this.tile_samples(&prep, t, sc);
-                sc.lists
-                    .iter()
-                    .zip(&sc.covered)
-                    .map(|(l, &cov)| if cov { 1.0 } else { alpha_of(l) })
-                    .collect()
-            })
-            .collect();
         let mut img = Vec::with_capacity(h * w);
+        let mut prod = Vec::with_capacity(h * w);
         for row in 0..h {
             for tx in 0..bins.tiles_x {
                 let tile = &tiles[(row / TILE) * bins.tiles_x + tx];
                 let cols = TILE.min(w - tx * TILE);
                 if tile.is_empty() {
                     img.extend(std::iter::repeat_n(T::zero(), cols));
+                    prod.extend(std::iter::repeat_n(1.0, cols));
                 } else {
                     let o = (row % TILE) * TILE;
-                    img.extend(tile[o..o + cols].iter().map(|&v| T::from_f64c(v)));
+                    img.extend(tile[o..o + cols].iter().map(|&(a, _)| T::from_f64c(a)));
+                    prod.extend(tile[o..o + cols].iter().map(|&(_, p)| p));
                 }
             }
         }
-        self.prep = Some(prep);
+        prep.prod = prod;
+        self.prep = Some(Arc::new(prep));
         Ok(vec![
             ArrayD::from_shape_vec(IxDyn(&[h, w]), img).expect("h w")
         ])
     }
 
+    /// Parallel over faces, each summing its own pairs (row-major over its cut-off region);
+    /// the per-face sums are added to the vertices in face order, so results are
+    /// bit-identical for any thread count.
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
@@ -447,81 +556,35 @@ impl<T: Real> Op<T> for DibrAlphaOp {
             .prep
             .as_ref()
             .ok_or_else(|| AutodiffError::invalid("dibr_alpha", "backward before forward"))?;
-        let s = &self.s;
-        let (w, h) = (s.width, s.height);
         let go = ctx.grad_outputs[0].as_standard_layout();
         let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
-        // Per tile: accumulators per (tile face, corner) of [dX, dY, dW].
+        // Per face: [dX, dY, dW] of each corner.
         const STRIDE: usize = 9;
-        let bins = &prep.bins;
-        let accs: Vec<Vec<f64>> = (0..bins.tiles.len())
-            .into_par_iter()
-            .map_init(TileScratch::new, |sc, t| {
-                let tf = &bins.tiles[t];
-                let mut acc = vec![0.0; tf.len() * STRIDE];
-                if tf.is_empty() {
-                    return acc;
-                }
-                let (tx, ty) = (t % bins.tiles_x, t / bins.tiles_x);
-                let rows = ty * TILE..(ty * TILE + TILE).min(h);
-                let cols = tx * TILE..(tx * TILE + TILE).min(w);
-                if rows.clone().all(|r| {
-                    go[r * w + cols.start..r * w + cols.end]
-                        .iter()
-                        .all(|&g| g == 0.0)
-                }) {
-                    return acc;
-                }
-                self.tile_samples(prep, t, sc);
-                for row in rows {
-                    for col in cols.clone() {
-                        let g = go[row * w + col];
-                        let lp = (row - ty * TILE) * TILE + col - tx * TILE;
-                        let samples = &sc.lists[lp];
-                        if g == 0.0 || sc.covered[lp] || samples.is_empty() {
-                            continue;
-                        }
-                        // prod_{k != j} f_k from prefix and suffix products (no division, so
-                        // exact also when some f_k underflows).
-                        sc.suffix.clear();
-                        sc.suffix.resize(samples.len() + 1, 1.0);
-                        for j in (0..samples.len()).rev() {
-                            sc.suffix[j] = sc.suffix[j + 1] * samples[j].f;
-                        }
-                        let mut prefix = 1.0;
-                        for (j, q) in samples.iter().enumerate() {
-                            // dA/dx_j = -prod_{k != j} (1 - e^{-x_k}) e^{-x_j}.
-                            let gx = -g * prefix * sc.suffix[j + 1] * (-q.x).exp();
-                            prefix *= q.f;
-                            let mut gv = [[0.0f64; 2]; 3];
-                            closest_backward(&q.closest, gx / s.delta, &mut gv);
-                            let f = self.faces[tf[q.li as usize] as usize];
-                            let a = &mut acc[q.li as usize * STRIDE..(q.li as usize + 1) * STRIDE];
-                            for k in 0..3 {
-                                let vi = f[k] as usize;
-                                let gc = ndc_to_clip(gv[k], prep.ndc[vi], prep.depth[vi]);
-                                for j in 0..3 {
-                                    a[k * 3 + j] += gc[j];
-                                }
-                            }
-                        }
-                    }
-                }
-                acc
-            })
-            .collect();
+        // Faces in spatial order (the per-pixel data they read stays in cache), then summed
+        // into the vertices in face order.
+        let order = prep.bins.spatial_order();
+        let mut fgrad = vec![0.0; order.len() * STRIDE];
+        fgrad
+            .par_chunks_mut(STRIDE)
+            .zip(order.par_iter())
+            .with_min_len(16)
+            .for_each(|(acc, &fi)| self.face_gradient(prep, fi as usize, &go, acc));
+        let mut slot = vec![u32::MAX; self.faces.len()];
+        for (i, &fi) in order.iter().enumerate() {
+            slot[fi as usize] = i as u32;
+        }
         let nv = prep.ndc.len();
         let mut gclip = vec![0.0; nv * 4];
-        for (t, acc) in accs.iter().enumerate() {
-            for (li, &fi) in bins.tiles[t].iter().enumerate() {
-                let f = self.faces[fi as usize];
-                let a = &acc[li * STRIDE..(li + 1) * STRIDE];
-                for k in 0..3 {
-                    let v = f[k] as usize;
-                    gclip[v * 4] += a[k * 3];
-                    gclip[v * 4 + 1] += a[k * 3 + 1];
-                    gclip[v * 4 + 3] += a[k * 3 + 2];
-                }
+        for (f, &i) in self.faces.iter().zip(&slot) {
+            if i == u32::MAX {
+                continue;
+            }
+            let a = &fgrad[i as usize * STRIDE..(i as usize + 1) * STRIDE];
+            for k in 0..3 {
+                let v = f[k] as usize;
+                gclip[v * 4] += a[k * 3];
+                gclip[v * 4 + 1] += a[k * 3 + 1];
+                gclip[v * 4 + 3] += a[k * 3 + 2];
             }
         }
         Ok(vec![Some(

@@ -13,15 +13,22 @@
 //! `e_f = exp((zn_f - m) / gamma)`, `e_b = exp((eps - m) / gamma)`, `m = max(eps, max_f zn_f)`.
 //! Faces with a vertex at `w <= 0` are skipped (no near clipping, as in SoftRas).
 //!
-//! Evaluation: per 16 x 16 tile, each binned face is evaluated over its cut-off box within the
-//! tile (a scatter into per-pixel sample lists, in face order), from per-face geometry
-//! precomputed once ([`super::common::FaceGeom`]): affine barycentrics, the distance to the
-//! boundary of an inside point as `min_k w_k alt_k`, and for an outside point a lower bound
-//! that rejects pairs beyond the cut-off before the exact closest point. `D` and `1 - D` come
-//! from one exponential. Silhouette stability: `P = prod (1 - D)` is a plain product (each
-//! factor in `[0, 1]`, so it never overflows and is exactly 0 when some `D = 1`); where
-//! `P >= 1/2` the silhouette is `-expm1(sum log1p(-D))` for full relative precision of faint
-//! coverage. Its gradient is `d(1 - P)/dx_f = P D_f`, with no division by `1 - D_f`.
+//! Evaluation (forward): per 16 x 16 tile, each binned face is evaluated over the row spans
+//! of its cut-off region within the tile ([`super::common::FaceSpan`]: the scanlines of the
+//! triangle dilated by the cut-off along its edge normals), from per-face geometry precomputed
+//! once ([`super::common::FaceGeom`]): affine barycentrics, the distance to the boundary of an
+//! inside point as `min_k w_k alt_k`, and for an outside point a lower bound that rejects pairs
+//! beyond the cut-off before the exact closest point. `D` and `1 - D` come from one
+//! exponential. Two passes over the tile's faces with per-pixel accumulators (no per-pixel
+//! lists): the first keeps each pair's `D`, `zn` and attribute weights and accumulates `m` and
+//! `P`, the second the blend; each pixel's sums run in face order. The backward runs in
+//! parallel over faces: each face re-evaluates its own pairs and reads what it needs of the
+//! pixel's aggregate (`m`, `Z`, `P`, `I`) from the forward, so neither the scatter into
+//! per-pixel lists nor the aggregate is redone; per-face sums are added to the vertices in
+//! face order (bit-identical for any thread count). Silhouette stability: `P = prod (1 - D)`
+//! is a plain product (each factor in `[0, 1]`, so it never overflows and is exactly 0 when
+//! some `D = 1`); where `P >= 1/2` the silhouette is `-expm1(sum log1p(-D))` for full relative
+//! precision of faint coverage. Its gradient is `d(1 - P)/dx_f = P D_f`, with no division by `1 - D_f`.
 
 use std::sync::Arc;
 
@@ -30,7 +37,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory, closest_backward, ndc_to_clip, project, FaceGeom, TileBins, TILE,
+    check_memory, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom, TileBins, TILE,
 };
 use crate::error::RenderError;
 
@@ -175,51 +182,69 @@ pub fn softras<'t, T: Real>(
     Ok(clip.tape().apply(op, &[clip, attrs]))
 }
 
-/// Projected vertices and the tile bins of one forward.
+/// Projected vertices and the tile bins of one forward, and per pixel what the backward needs
+/// of the forward's aggregate.
 struct Prep {
     ndc: Vec<[f64; 2]>,
     depth: Vec<f64>,
     attrs: Vec<f64>,
     channels: usize,
     bins: TileBins,
+    /// Per pixel (row-major), `PIX_STATS + C` values: `m` (the largest `zn`, at least `eps`),
+    /// the blend's normaliser `Z = sum_f D_f e_f + e_b`, `P = prod_f (1 - D_f)`, then the C
+    /// aggregated attributes `I`. Written by the forward.
+    pix: Vec<f64>,
 }
 
-/// One face at one pixel: the face is kept if the pixel centre is inside it, or outside within
-/// the cut-off.
+/// Leading per-pixel values of [`Prep::pix`] before the attributes.
+const PIX_STATS: usize = 3;
+
+/// One kept (face, pixel) pair of a tile, as the forward's first pass leaves it for the second.
 #[derive(Clone, Copy, Default)]
-struct Sample {
-    /// Index into the tile's face list.
-    li: u32,
-    /// `x = s d^2 / sigma`.
-    x: f64,
-    /// `D = sigmoid(x)`.
+struct Rec {
+    /// Tile-local pixel index (row-major).
+    lp: u32,
+    /// `D = sigmoid(x)`, `x = s d^2 / sigma`.
     dd: f64,
-    /// `1 - D = sigmoid(-x)`.
-    omd: f64,
-    /// Screen-space barycentrics of the pixel centre.
-    w: [f64; 3],
-    /// The same clipped to `[0, 1]` and renormalised.
-    wn: [f64; 3],
-    /// Sum of the clipped barycentrics.
-    sumwc: f64,
-    /// View depth `1 / sum_k wn_k / d_k`.
-    z: f64,
     /// `1 - (z - near) / (far - near)`.
     zn: f64,
-    /// `exp((zn - m) / gamma)`, set by [`SoftRasOp::aggregate`].
-    ef: f64,
+    /// Interpolation weights of the face's vertex attributes (`wn`, or `wn_k z / z_k`).
+    wp: [f64; 3],
 }
 
-/// Per-thread scratch: the samples of every pixel of one tile (local row-major order), each
-/// list in tile face order.
+/// Per-thread scratch of the forward: the kept pairs of one tile in tile face order (`runs[li]
+/// ..runs[li + 1]` are those of tile face `li`), and per tile pixel the running aggregate.
 struct TileScratch {
-    lists: Vec<Vec<Sample>>,
+    recs: Vec<Rec>,
+    runs: Vec<usize>,
+    /// Pairs per pixel.
+    count: [u32; TILE * TILE],
+    /// `m = max(eps, max_f zn_f)`.
+    m: [f64; TILE * TILE],
+    /// `P = prod (1 - D)`.
+    prod: [f64; TILE * TILE],
+    /// `Z = sum D e + e_b`.
+    zsum: [f64; TILE * TILE],
+    /// `sum log1p(-D)` (only where `P >= 1/2`).
+    lsum: [f64; TILE * TILE],
+    /// `sum D e c + e_b bg`, C per pixel.
+    col: Vec<f64>,
+    /// The current face's vertex attributes, `3 x C`.
+    fa: Vec<f64>,
 }
 
 impl TileScratch {
-    fn new() -> Self {
+    fn new(c: usize) -> Self {
         Self {
-            lists: (0..TILE * TILE).map(|_| Vec::new()).collect(),
+            recs: Vec::new(),
+            runs: Vec::new(),
+            count: [0; TILE * TILE],
+            m: [0.0; TILE * TILE],
+            prod: [0.0; TILE * TILE],
+            zsum: [0.0; TILE * TILE],
+            lsum: [0.0; TILE * TILE],
+            col: vec![0.0; TILE * TILE * c],
+            fa: vec![0.0; 3 * c],
         }
     }
 }
@@ -230,10 +255,10 @@ struct SoftRasOp {
     prep: Option<Arc<Prep>>,
 }
 
-/// `(sigmoid(x), sigmoid(-x))` from one exponential, both to full relative precision.
+/// `(sigmoid(x), sigmoid(-x))` from one exponential `e = exp(-|x|)`, both to full relative
+/// precision.
 #[inline(always)]
-fn sigmoid_pair(x: f64) -> (f64, f64) {
-    let e = (-x.abs()).exp();
+fn sigmoid_from(x: f64, e: f64) -> (f64, f64) {
     let r = 1.0 / (1.0 + e);
     if x >= 0.0 {
         (r, e * r)
@@ -266,77 +291,76 @@ fn prepare<T: Real>(
         attrs,
         channels,
         bins,
+        pix: Vec::new(),
     }
 }
 
+/// Pairs the backward evaluates together, stage by stage ([`SoftRasOp::face_gradient`]).
+const BATCH: usize = 32;
+
+/// Everything of one (face, pixel) pair that depends on the face's geometry and the pixel
+/// only: the forward's first pass and the backward evaluate it with the same operations, so
+/// they keep the same pairs and see the same values.
+#[derive(Clone, Copy, Default)]
+struct Pair {
+    /// `x = s d^2 / sigma`.
+    x: f64,
+    /// Screen-space barycentrics of the pixel centre.
+    w: [f64; 3],
+    /// The same clipped to `[0, 1]` and renormalised.
+    wn: [f64; 3],
+    /// Sum of the clipped barycentrics.
+    sumwc: f64,
+    /// View depth `1 / sum_k wn_k / z_k`.
+    z: f64,
+    /// The closest boundary point, for a centre outside the triangle (inside, the backward
+    /// takes the foot on the nearest edge, [`FaceGeom::closest_inside`]).
+    closest: Closest,
+}
+
 impl SoftRasOp {
-    /// Evaluates every face of tile `t` over its (cut-off expanded) box within the tile: the
-    /// samples of each pixel go to `sc.lists` (local row-major), each list in tile face order.
-    /// Pairs outside the triangle beyond the cut-off are rejected by a lower bound of their
-    /// distance before the exact closest point is computed.
-    fn tile_samples(&self, prep: &Prep, t: usize, sc: &mut TileScratch) {
-        let s = &self.s;
-        let bins = &prep.bins;
-        for l in sc.lists.iter_mut() {
-            l.clear();
-        }
-        let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
-        let inv_sigma = 1.0 / s.sigma;
-        let cut2 = s.cutoff_sq();
-        let zscale = 1.0 / (s.far - s.near);
-        for (li, &fi) in bins.tiles[t].iter().enumerate() {
-            let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
-            else {
-                continue;
-            };
-            let g = &bins.geoms[fi as usize];
-            for row in r0..=r1 {
-                let py = bins.py[row];
-                let lbase = (row - r_base) * TILE;
-                for col in c0..=c1 {
-                    let p = [bins.px[col], py];
-                    let w = g.bary(p);
-                    let x = if w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0 {
-                        g.inside_d2(&w) * inv_sigma
-                    } else {
-                        if g.outside_d2_bound(&w) > cut2 {
-                            continue;
-                        }
-                        let d2 = g.closest(p).d2;
-                        if d2 > cut2 {
-                            continue;
-                        }
-                        -d2 * inv_sigma
-                    };
-                    let wc = w.map(|x| x.clamp(0.0, 1.0));
-                    let sumwc = wc[0] + wc[1] + wc[2];
-                    if !(sumwc > 0.0 && sumwc.is_finite()) {
-                        continue;
-                    }
-                    let wn = wc.map(|x| x / sumwc);
-                    let z = 1.0 / (wn[0] * g.inv_d[0] + wn[1] * g.inv_d[1] + wn[2] * g.inv_d[2]);
-                    let (dd, omd) = sigmoid_pair(x);
-                    sc.lists[lbase + col - c_base].push(Sample {
-                        li: li as u32,
-                        x,
-                        dd,
-                        omd,
-                        w,
-                        wn,
-                        sumwc,
-                        z,
-                        zn: 1.0 - (z - s.near) * zscale,
-                        ef: 0.0,
-                    });
-                }
+    /// The pair of face geometry `g` and pixel centre `p`, or `None` when it is dropped: the
+    /// centre is outside the triangle and farther than the cut-off (a lower bound of the
+    /// distance rejects most of those before the exact closest point, eq. (1)-(2) of the
+    /// paper: `D = sigmoid(s d^2 / sigma)`), or its clipped barycentrics do not normalise.
+    #[inline(always)]
+    fn pair(g: &FaceGeom, p: [f64; 2], inv_sigma: f64, cut2: f64) -> Option<Pair> {
+        let w = g.bary(p);
+        let mut closest = Closest::default();
+        let x = if w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0 {
+            g.inside_d2(&w) * inv_sigma
+        } else {
+            if g.outside_d2_bound(&w) > cut2 {
+                return None;
             }
+            closest = g.closest(p);
+            if closest.d2 > cut2 {
+                return None;
+            }
+            -closest.d2 * inv_sigma
+        };
+        let wc = w.map(|x| x.clamp(0.0, 1.0));
+        let sumwc = wc[0] + wc[1] + wc[2];
+        if !(sumwc > 0.0 && sumwc.is_finite()) {
+            return None;
         }
+        let inv = 1.0 / sumwc;
+        let wn = wc.map(|x| x * inv);
+        let z = 1.0 / (wn[0] * g.inv_d[0] + wn[1] * g.inv_d[1] + wn[2] * g.inv_d[2]);
+        Some(Pair {
+            x,
+            w,
+            wn,
+            sumwc,
+            z,
+            closest,
+        })
     }
 
-    /// Interpolation weights of a sample's vertex attributes: `wn`, or perspective-correct
-    /// `wn_k z / d_k`.
-    #[inline]
-    fn attr_weights(&self, g: &FaceGeom, q: &Sample) -> [f64; 3] {
+    /// Interpolation weights of a pair's vertex attributes: `wn`, or perspective-correct
+    /// `wn_k z / z_k`.
+    #[inline(always)]
+    fn attr_weights(&self, g: &FaceGeom, q: &Pair) -> [f64; 3] {
         if self.s.perspective_correct {
             [
                 q.wn[0] * g.inv_d[0] * q.z,
@@ -348,68 +372,140 @@ impl SoftRasOp {
         }
     }
 
-    /// Aggregates the samples of one pixel (of a tile with face list `tf`): writes the C
-    /// attributes and alpha into `px`, sets each sample's `ef`, keeps each sample's
-    /// interpolated attributes in `cols` (C per sample; zeros where its blend weight is 0, as
-    /// the backward then multiplies them by 0), returns `(Z, P)`: the blend's normaliser and
-    /// `P = prod (1 - D)`.
-    fn aggregate(
-        &self,
-        prep: &Prep,
-        tf: &[u32],
-        samples: &mut [Sample],
-        px: &mut [f64],
-        cols: &mut Vec<f64>,
-    ) -> (f64, f64) {
+    /// Forward of tile `t` in two passes over its faces (in tile face order, each over the
+    /// row spans of its cut-off region within the tile), with per-pixel accumulators instead
+    /// of per-pixel sample lists. Pass 1 evaluates every pair (`D`, `zn`, attribute weights)
+    /// into `sc.recs` and accumulates per pixel `m = max(eps, max_f zn_f)` and
+    /// `P = prod_f (1 - D_f)`; pass 2 reads the pairs back and accumulates the blend of eq.
+    /// (6) of the paper, `sum_f D_f e_f c_f + e_b bg` and `Z = sum_f D_f e_f + e_b` with
+    /// `e_f = exp((zn_f - m) / gamma)`, and `sum log1p(-D_f)` where `P >= 1/2`. Writes
+    /// `C + 1 + PIX_STATS` values per tile pixel (local row-major) to `out`: the attributes,
+    /// the silhouette, then `m`, `Z`, `P`. Each pixel's sums run in face order, as a
+    /// per-pixel list would, so the result does not depend on the thread count.
+    fn tile_forward(&self, prep: &Prep, t: usize, sc: &mut TileScratch, out: &mut Vec<f64>) {
         let s = &self.s;
         let c = prep.channels;
-        let m = samples.iter().fold(s.eps, |m, q| m.max(q.zn));
+        let bins = &prep.bins;
+        let tf = &bins.tiles[t];
+        let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
+        let inv_sigma = 1.0 / s.sigma;
         let inv_gamma = 1.0 / s.gamma;
-        let eb = ((s.eps - m) * inv_gamma).exp();
-        let mut zsum = eb;
-        for (ch, v) in px[..c].iter_mut().enumerate() {
-            *v = eb * s.background.get(ch).copied().unwrap_or(0.0);
+        let cut2 = s.cutoff_sq();
+        let zscale = 1.0 / (s.far - s.near);
+        sc.recs.clear();
+        sc.runs.clear();
+        sc.count.fill(0);
+        sc.m.fill(s.eps);
+        sc.prod.fill(1.0);
+        // Pass 1: pairs, m and P.
+        let mut qs = [Pair::default(); TILE];
+        let mut lps = [0usize; TILE];
+        let mut e_sig = [0.0f64; TILE];
+        for &fi in tf.iter() {
+            sc.runs.push(sc.recs.len());
+            let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
+            else {
+                continue;
+            };
+            let g = &bins.geoms[fi as usize];
+            let span = bins.span(fi as usize);
+            for row in r0..=r1 {
+                let py = bins.py[row];
+                let Some((a, b)) = span.row(py, c0, c1) else {
+                    continue;
+                };
+                let lbase = (row - r_base) * TILE;
+                // The row's pairs (at most TILE) stage by stage, as in the backward: geometry,
+                // exponentials, then the accumulation, so independent pairs overlap.
+                let mut n = 0;
+                for col in a..=b {
+                    if let Some(q) = Self::pair(g, [bins.px[col], py], inv_sigma, cut2) {
+                        qs[n] = q;
+                        lps[n] = lbase + col - c_base;
+                        n += 1;
+                    }
+                }
+                for i in 0..n {
+                    e_sig[i] = exp(-qs[i].x.abs());
+                }
+                for i in 0..n {
+                    let (q, lp) = (&qs[i], lps[i]);
+                    let (dd, omd) = sigmoid_from(q.x, e_sig[i]);
+                    let zn = 1.0 - (q.z - s.near) * zscale;
+                    sc.count[lp] += 1;
+                    sc.m[lp] = sc.m[lp].max(zn);
+                    sc.prod[lp] *= omd;
+                    sc.recs.push(Rec {
+                        lp: lp as u32,
+                        dd,
+                        zn,
+                        wp: self.attr_weights(g, q),
+                    });
+                }
+            }
         }
-        let mut prod = 1.0;
-        cols.clear();
-        cols.resize(samples.len() * c, 0.0);
-        for (j, q) in samples.iter_mut().enumerate() {
-            // exp underflows to exactly 0 below -745.2: skip the call.
-            let t = (q.zn - m) * inv_gamma;
-            q.ef = if t < -746.0 { 0.0 } else { t.exp() };
-            prod *= q.omd;
-            let we = q.dd * q.ef;
-            if we == 0.0 {
+        sc.runs.push(sc.recs.len());
+        // Background terms.
+        for lp in 0..TILE * TILE {
+            let eb = exp((s.eps - sc.m[lp]) * inv_gamma);
+            sc.zsum[lp] = eb;
+            sc.lsum[lp] = 0.0;
+            for ch in 0..c {
+                sc.col[lp * c + ch] = eb * s.background.get(ch).copied().unwrap_or(0.0);
+            }
+        }
+        // Pass 2: the blend.
+        for (li, &fi) in tf.iter().enumerate() {
+            let recs = &sc.recs[sc.runs[li]..sc.runs[li + 1]];
+            if recs.is_empty() {
                 continue;
             }
-            zsum += we;
-            let fi = tf[q.li as usize] as usize;
-            let f = self.faces[fi];
-            let wp = self.attr_weights(&prep.bins.geoms[fi], q);
-            let col = &mut cols[j * c..(j + 1) * c];
-            for (ch, (v, cv)) in px[..c].iter_mut().zip(col.iter_mut()).enumerate() {
-                let a = wp[0] * prep.attrs[f[0] as usize * c + ch]
-                    + wp[1] * prep.attrs[f[1] as usize * c + ch]
-                    + wp[2] * prep.attrs[f[2] as usize * c + ch];
-                *cv = a;
-                *v += we * a;
+            let f = self.faces[fi as usize];
+            for k in 0..3 {
+                let src = &prep.attrs[f[k] as usize * c..(f[k] as usize + 1) * c];
+                sc.fa[k * c..(k + 1) * c].copy_from_slice(src);
+            }
+            for r in recs {
+                let lp = r.lp as usize;
+                if sc.prod[lp] >= 0.5 {
+                    sc.lsum[lp] += (-r.dd).ln_1p();
+                }
+                // exp underflows to exactly 0 below -745.2: skip the call.
+                let tt = (r.zn - sc.m[lp]) * inv_gamma;
+                let ef = if tt < -746.0 { 0.0 } else { exp(tt) };
+                let we = r.dd * ef;
+                if we == 0.0 {
+                    continue;
+                }
+                sc.zsum[lp] += we;
+                let col = &mut sc.col[lp * c..(lp + 1) * c];
+                for (ch, v) in col.iter_mut().enumerate() {
+                    let a =
+                        r.wp[0] * sc.fa[ch] + r.wp[1] * sc.fa[c + ch] + r.wp[2] * sc.fa[2 * c + ch];
+                    *v += we * a;
+                }
             }
         }
-        for v in px[..c].iter_mut() {
-            *v /= zsum;
+        out.clear();
+        for lp in 0..TILE * TILE {
+            if sc.count[lp] == 0 {
+                out.extend((0..c).map(|ch| s.background.get(ch).copied().unwrap_or(0.0)));
+                out.push(0.0);
+            } else {
+                let z = sc.zsum[lp];
+                out.extend(sc.col[lp * c..(lp + 1) * c].iter().map(|&v| v / z));
+                // Silhouette 1 - P. Where P is near 1 (faint coverage) the difference is taken
+                // from the sum of logs, sum ln(1 - D) = sum log1p(-D), for full relative
+                // precision.
+                let p = sc.prod[lp];
+                out.push(if p < 0.5 {
+                    1.0 - p
+                } else {
+                    -sc.lsum[lp].exp_m1()
+                });
+            }
+            out.extend([sc.m[lp], sc.zsum[lp], sc.prod[lp]]);
         }
-        // Silhouette 1 - P. Where P is near 1 (faint coverage) the difference is taken from
-        // the sum of logs, sum ln(1 - D) = sum log1p(-D), for full relative precision.
-        px[c] = if prod < 0.5 {
-            1.0 - prod
-        } else {
-            -samples
-                .iter()
-                .map(|q| (-q.dd).ln_1p())
-                .sum::<f64>()
-                .exp_m1()
-        };
-        (zsum, prod)
     }
 }
 
@@ -419,39 +515,38 @@ impl<T: Real> Op<T> for SoftRasOp {
     }
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let prep = Arc::new(prepare(inputs[0], inputs[1], &self.faces, &self.s));
+        let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s);
         let (w, h, c) = (self.s.width, self.s.height, prep.channels);
         let this = &*self;
-        let bins = &prep.bins;
         let bg: Vec<f64> = (0..c)
             .map(|ch| this.s.background.get(ch).copied().unwrap_or(0.0))
             .chain([0.0])
             .collect();
-        // Parallel over tiles, each into its own buffer (local row-major, C + 1 values a pixel).
-        let tiles: Vec<Vec<f64>> = (0..bins.tiles.len())
-            .into_par_iter()
-            .map_init(
-                || (TileScratch::new(), vec![0.0; c + 1], Vec::new()),
-                |(sc, px, colbuf), t| {
-                    if bins.tiles[t].is_empty() {
-                        return Vec::new();
-                    }
-                    this.tile_samples(&prep, t, sc);
-                    let tf = &bins.tiles[t];
-                    let mut out = Vec::with_capacity(TILE * TILE * (c + 1));
-                    for samples in sc.lists.iter_mut() {
-                        if samples.is_empty() {
-                            out.extend_from_slice(&bg);
-                        } else {
-                            this.aggregate(&prep, tf, samples, px, colbuf);
-                            out.extend_from_slice(px);
+        // Parallel over tiles, each into its own buffer (local row-major, C + 1 + PIX_STATS
+        // values a pixel).
+        let per = c + 1 + PIX_STATS;
+        let tiles: Vec<Vec<f64>> = {
+            let prep = &prep;
+            let bins = &prep.bins;
+            (0..bins.tiles.len())
+                .into_par_iter()
+                .map_init(
+                    || TileScratch::new(c),
+                    |sc, t| {
+                        let mut out = Vec::new();
+                        if !bins.tiles[t].is_empty() {
+                            out.reserve(TILE * TILE * per);
+                            this.tile_forward(prep, t, sc, &mut out);
                         }
-                    }
-                    out
-                },
-            )
-            .collect();
+                        out
+                    },
+                )
+                .collect()
+        };
+        let bins = &prep.bins;
         let mut img = Vec::with_capacity(h * w * (c + 1));
+        let pstride = PIX_STATS + c;
+        let mut pix = vec![0.0; h * w * pstride];
         for row in 0..h {
             for tx in 0..bins.tiles_x {
                 let tile = &tiles[(row / TILE) * bins.tiles_x + tx];
@@ -460,99 +555,87 @@ impl<T: Real> Op<T> for SoftRasOp {
                     for _ in 0..cols {
                         img.extend(bg.iter().map(|&v| T::from_f64c(v)));
                     }
-                } else {
-                    let o = (row % TILE) * TILE * (c + 1);
-                    img.extend(tile[o..o + cols * (c + 1)].iter().map(|&v| T::from_f64c(v)));
+                    continue;
+                }
+                for j in 0..cols {
+                    let o = ((row % TILE) * TILE + j) * per;
+                    let v = &tile[o..o + per];
+                    img.extend(v[..c + 1].iter().map(|&v| T::from_f64c(v)));
+                    let q = (row * w + tx * TILE + j) * pstride;
+                    pix[q..q + PIX_STATS].copy_from_slice(&v[c + 1..]);
+                    pix[q + PIX_STATS..q + pstride].copy_from_slice(&v[..c]);
                 }
             }
         }
-        self.prep = Some(prep);
+        prep.pix = pix;
+        self.prep = Some(Arc::new(prep));
         Ok(vec![
             ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c+1")
         ])
     }
 
+    /// Parallel over faces: each face sums its pairs' gradients over its own cut-off region
+    /// (row spans of its box, in row-major order) from the forward's per-pixel aggregate
+    /// ([`Prep::pix`]), so no per-pixel lists are rebuilt; the per-face sums are then added to
+    /// the vertices in face order, so results are bit-identical for any thread count.
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let prep = self
             .prep
             .as_ref()
             .ok_or_else(|| AutodiffError::invalid("softras", "backward before forward"))?;
-        let s = &self.s;
-        let (w, h, c) = (s.width, s.height, prep.channels);
+        let c = prep.channels;
         let go = ctx.grad_outputs[0].as_standard_layout();
         let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
+        // Per pixel, what every pair there needs, packed (C + 4 values): the attribute
+        // gradient g, then g_alpha P, g . I, 1 / Z and m (infinite where g is 0: skipped).
+        let pstride = PIX_STATS + c;
+        let bstride = c + 4;
+        let mut pb = vec![0.0; (go.len() / (c + 1)) * bstride];
+        pb.par_chunks_mut(bstride)
+            .zip(go.par_chunks(c + 1))
+            .zip(prep.pix.par_chunks(pstride))
+            .with_min_len(1024)
+            .for_each(|((b, g), st)| {
+                if g.iter().all(|&x| x == 0.0) {
+                    b[c + 3] = f64::INFINITY;
+                    return;
+                }
+                b[..c].copy_from_slice(&g[..c]);
+                b[c] = g[c] * st[2];
+                b[c + 1] = (0..c).map(|ch| g[ch] * st[PIX_STATS + ch]).sum();
+                b[c + 2] = 1.0 / st[1];
+                b[c + 3] = st[0];
+            });
         let stride = 3 * (4 + c);
-        let bins = &prep.bins;
-        let inv_gamma = 1.0 / s.gamma;
-        // Per tile: accumulators per (tile face, corner) of [dX, dY, dZ, dW, dattr...].
-        let accs: Vec<Vec<f64>> = (0..bins.tiles.len())
-            .into_par_iter()
-            .map_init(
-                || (TileScratch::new(), vec![0.0; c + 1], Vec::new()),
-                |(sc, px, colbuf), t| {
-                    let tf = &bins.tiles[t];
-                    let mut acc = vec![0.0; tf.len() * stride];
-                    if tf.is_empty() {
-                        return acc;
-                    }
-                    let (tx, ty) = (t % bins.tiles_x, t / bins.tiles_x);
-                    let grad_at = |row: usize, col: usize| {
-                        &go[(row * w + col) * (c + 1)..(row * w + col + 1) * (c + 1)]
-                    };
-                    let rows = ty * TILE..(ty * TILE + TILE).min(h);
-                    let cols = tx * TILE..(tx * TILE + TILE).min(w);
-                    if rows.clone().all(|r| {
-                        cols.clone()
-                            .all(|cc| grad_at(r, cc).iter().all(|&x| x == 0.0))
-                    }) {
-                        return acc;
-                    }
-                    self.tile_samples(prep, t, sc);
-                    for row in rows {
-                        for col in cols.clone() {
-                            let g = grad_at(row, col);
-                            let samples = &mut sc.lists[(row - ty * TILE) * TILE + col - tx * TILE];
-                            if samples.is_empty() || g.iter().all(|&x| x == 0.0) {
-                                continue;
-                            }
-                            let (zsum, prod) = self.aggregate(prep, tf, samples, px, colbuf);
-                            let p = [bins.px[col], bins.py[row]];
-                            for (j, q) in samples.iter().enumerate() {
-                                let fi = tf[q.li as usize] as usize;
-                                let colq = &colbuf[j * c..(j + 1) * c];
-                                let cdiff: f64 = (0..c).map(|ch| g[ch] * (colq[ch] - px[ch])).sum();
-                                // dL/dx through D in the blend (dD/dx = D (1 - D)) and in the
-                                // silhouette (d(1 - P)/dx_f = P D_f).
-                                let gblend = q.ef * cdiff / zsum;
-                                let gx = gblend * q.dd * q.omd + g[c] * prod * q.dd;
-                                let g_zn = q.dd * gblend * inv_gamma;
-                                let gscale = q.dd * q.ef / zsum;
-                                let li = q.li as usize;
-                                let a = &mut acc[li * stride..(li + 1) * stride];
-                                self.face_backward(prep, fi, p, q, gx, g_zn, &g[..c], gscale, a);
-                            }
-                        }
-                    }
-                    acc
-                },
-            )
-            .collect();
+        // Faces in spatial order (the per-pixel data they read stays in cache); per face:
+        // [dX, dY, dZ, dW, dattr...] of each corner, summed into the vertices in face order.
+        let order = prep.bins.spatial_order();
+        let mut fgrad = vec![0.0; order.len() * stride];
+        fgrad
+            .par_chunks_mut(stride)
+            .zip(order.par_iter())
+            .with_min_len(16)
+            .for_each(|(acc, &fi)| self.face_gradient(prep, fi as usize, &pb, acc));
+        let mut slot = vec![u32::MAX; self.faces.len()];
+        for (i, &fi) in order.iter().enumerate() {
+            slot[fi as usize] = i as u32;
+        }
         let nv = prep.ndc.len();
         let mut gclip = vec![0.0; nv * 4];
         let mut gattr = vec![0.0; nv * c];
-        for (t, acc) in accs.iter().enumerate() {
-            for (li, &fi) in bins.tiles[t].iter().enumerate() {
-                let f = self.faces[fi as usize];
-                let a = &acc[li * stride..(li + 1) * stride];
-                for k in 0..3 {
-                    let v = f[k] as usize;
-                    let ak = &a[k * (4 + c)..(k + 1) * (4 + c)];
-                    for j in 0..4 {
-                        gclip[v * 4 + j] += ak[j];
-                    }
-                    for ch in 0..c {
-                        gattr[v * c + ch] += ak[4 + ch];
-                    }
+        for (f, &i) in self.faces.iter().zip(&slot) {
+            if i == u32::MAX {
+                continue;
+            }
+            let a = &fgrad[i as usize * stride..(i as usize + 1) * stride];
+            for k in 0..3 {
+                let v = f[k] as usize;
+                let ak = &a[k * (4 + c)..(k + 1) * (4 + c)];
+                for j in 0..4 {
+                    gclip[v * 4 + j] += ak[j];
+                }
+                for ch in 0..c {
+                    gattr[v * c + ch] += ak[4 + ch];
                 }
             }
         }
@@ -568,105 +651,193 @@ impl<T: Real> Op<T> for SoftRasOp {
 }
 
 impl SoftRasOp {
-    /// Chains dL/dx (x = s d^2 / sigma), dL/dzn and dL/d(interpolated attribute)
-    /// (= `g_col * gscale`) of one sample at pixel `p` down to its three vertices:
-    /// `acc[k * (4 + C)..]` gets [dX, dY, dZ, dW, dattr...] of corner k.
-    #[allow(clippy::too_many_arguments)]
-    fn face_backward(
-        &self,
-        prep: &Prep,
-        fi: usize,
-        p: [f64; 2],
-        q: &Sample,
-        gx: f64,
-        g_zn: f64,
-        g_col: &[f64],
-        gscale: f64,
-        acc: &mut [f64],
-    ) {
+    /// Gradient of the loss with respect to face `fi`'s three vertices, summed over its pairs
+    /// (`pb`: per pixel, row-major, `C + 4` values: the attribute gradient `g`, `g_alpha P`,
+    /// `g . I`, `1 / Z`, `m`, as the backward packs them): `acc[k * (4 + C)..]` gets
+    /// [dX, dY, dZ, dW, dattr...] of corner k.
+    ///
+    /// Per pair, with `g` the pixel's output gradient, `I` its attributes, `a_f` the face's
+    /// interpolated attributes, `e_f` its depth weight and `Z` the normaliser (eq. (6) of the
+    /// paper): `dL/dx = (e_f (g . (a_f - I)) / Z) D (1 - D) + g_alpha P D` (the blend, and the
+    /// silhouette `1 - P` with `d(1 - P)/dx_f = P D_f`), `dL/dzn = D e_f (g . (a_f - I)) /
+    /// (Z gamma)`, `dL/da_f = g D e_f / Z`. These are chained through the distance (closest
+    /// boundary point), the clipped barycentrics and the depth to the face's NDC vertices and
+    /// view depths, accumulated per face, and taken to clip coordinates once at the end.
+    fn face_gradient(&self, prep: &Prep, fi: usize, pb: &[f64], acc: &mut [f64]) {
         let s = &self.s;
+        let bins = &prep.bins;
+        let rc = bins.rects[fi];
+        if rc[0] > rc[1] {
+            return;
+        }
         let c = prep.channels;
+        let bstride = c + 4;
+        let stride = 4 + c;
         let f = self.faces[fi];
-        let geom = &prep.bins.geoms[fi];
+        let geom = &bins.geoms[fi];
         let v = geom.v;
-        let d = f.map(|i| prep.depth[i as usize]);
+        let inv_d = geom.inv_d;
+        let inv_area = 1.0 / geom.area;
+        let inv_sigma = 1.0 / s.sigma;
+        let inv_gamma = 1.0 / s.gamma;
+        let cut2 = s.cutoff_sq();
+        let zscale = 1.0 / (s.far - s.near);
+        let fa = |k: usize, ch: usize| prep.attrs[f[k] as usize * c + ch];
+        // NDC and view-depth gradients of the three vertices.
         let mut gv = [[0.0f64; 2]; 3];
         let mut gdep = [0.0f64; 3];
-        let mut gwn = [0.0f64; 3];
-        // Coverage: x = s d2 / sigma, d2 the squared distance to the closest boundary point
-        // (for an inside point the foot on the nearest edge line).
-        let sign = if q.x >= 0.0 { 1.0 } else { -1.0 };
-        let gd2 = gx * sign / s.sigma;
-        if gd2 != 0.0 {
-            closest_backward(&geom.closest(p), gd2, &mut gv);
-        }
-        // Depth and attributes.
-        let mut gz = -g_zn / (s.far - s.near);
-        let stride = 4 + c;
-        if s.perspective_correct {
-            // c = z u, u = sum_k wn_k C_k / d_k.
-            for ch in 0..c {
-                let gc = g_col[ch] * gscale;
-                if gc == 0.0 {
-                    continue;
-                }
-                let mut u = 0.0;
-                for k in 0..3 {
-                    let ck = prep.attrs[f[k] as usize * c + ch];
-                    u += q.wn[k] * ck / d[k];
-                }
-                gz += gc * u;
-                let gu = q.z * gc;
-                for k in 0..3 {
-                    let ck = prep.attrs[f[k] as usize * c + ch];
-                    gwn[k] += gu * ck / d[k];
-                    acc[k * stride + 4 + ch] += gu * q.wn[k] / d[k];
-                    gdep[k] -= gu * ck * q.wn[k] / (d[k] * d[k]);
-                }
-            }
-        } else {
-            for ch in 0..c {
-                let gc = g_col[ch] * gscale;
-                if gc == 0.0 {
-                    continue;
-                }
-                for k in 0..3 {
-                    gwn[k] += gc * prep.attrs[f[k] as usize * c + ch];
-                    acc[k * stride + 4 + ch] += gc * q.wn[k];
-                }
-            }
-        }
-        let gzinv = -q.z * q.z * gz;
-        for k in 0..3 {
-            gwn[k] += gzinv / d[k];
-            gdep[k] -= gzinv * q.wn[k] / (d[k] * d[k]);
-        }
-        // Clip-and-renormalise, then raw barycentrics w_k = n_k / sum n.
-        let dot = gwn[0] * q.wn[0] + gwn[1] * q.wn[1] + gwn[2] * q.wn[2];
-        let mut gw = [0.0; 3];
-        for k in 0..3 {
-            if q.w[k] > 0.0 && q.w[k] < 1.0 {
-                gw[k] = (gwn[k] - dot) / q.sumwc;
-            }
-        }
-        let dot2 = gw[0] * q.w[0] + gw[1] * q.w[1] + gw[2] * q.w[2];
-        for k in 0..3 {
-            let gn = (gw[k] - dot2) / geom.area;
-            if gn == 0.0 {
+        let (c0, c1c, r0, r1) = (
+            rc[0] as usize,
+            rc[1] as usize,
+            rc[2] as usize,
+            rc[3] as usize,
+        );
+        let span = bins.span(fi);
+        let mut qs = [Pair::default(); BATCH];
+        let mut cols = [0usize; BATCH];
+        let (mut e_sig, mut e_f) = ([0.0f64; BATCH], [0.0f64; BATCH]);
+        for row in r0..=r1 {
+            let py = bins.py[row];
+            let Some((a, b)) = span.row(py, c0, c1c) else {
                 continue;
+            };
+            // In batches of up to BATCH kept pairs: first their geometry, then their two
+            // exponentials, then the chain rule, so that the long dependency chains of
+            // independent pairs overlap instead of running one after another.
+            let mut next = a;
+            while next <= b {
+                let mut n = 0;
+                while next <= b && n < BATCH {
+                    let col = next;
+                    next += 1;
+                    let pi = row * s.width + col;
+                    if pb[pi * bstride + c + 3] == f64::INFINITY {
+                        continue;
+                    }
+                    let p = [bins.px[col], py];
+                    if let Some(q) = Self::pair(geom, p, inv_sigma, cut2) {
+                        qs[n] = q;
+                        cols[n] = col;
+                        n += 1;
+                    }
+                }
+                for i in 0..n {
+                    let pi = row * s.width + cols[i];
+                    let m = pb[pi * bstride + c + 3];
+                    let zn = 1.0 - (qs[i].z - s.near) * zscale;
+                    let tt = (zn - m) * inv_gamma;
+                    e_sig[i] = exp(-qs[i].x.abs());
+                    e_f[i] = if tt < -746.0 { 0.0 } else { exp(tt) };
+                }
+                for i in 0..n {
+                    let (q, col) = (&qs[i], cols[i]);
+                    let pi = row * s.width + col;
+                    let pbx = &pb[pi * bstride..(pi + 1) * bstride];
+                    let (g, ga_prod, g_img, inv_z) = (&pbx[..c], pbx[c], pbx[c + 1], pbx[c + 2]);
+                    let p = [bins.px[col], py];
+                    let (dd, omd) = sigmoid_from(q.x, e_sig[i]);
+                    let ef = e_f[i];
+                    let wp = self.attr_weights(geom, q);
+                    // The blend's terms vanish with D e_f (as in the forward, which skips them).
+                    let (gblend, gscale) = if dd * ef == 0.0 {
+                        (0.0, 0.0)
+                    } else {
+                        // g . (a_f - I).
+                        let mut cdiff = -g_img;
+                        for ch in 0..c {
+                            let a = wp[0] * fa(0, ch) + wp[1] * fa(1, ch) + wp[2] * fa(2, ch);
+                            cdiff += g[ch] * a;
+                        }
+                        (ef * cdiff * inv_z, dd * ef * inv_z)
+                    };
+                    let gx = gblend * dd * omd + ga_prod * dd;
+                    let g_zn = dd * gblend * inv_gamma;
+                    // Coverage: x = s d2 / sigma, d2 the squared distance to the closest boundary
+                    // point (for an inside point the foot on the nearest edge line).
+                    let sign = if q.x >= 0.0 { 1.0 } else { -1.0 };
+                    let gd2 = gx * sign * inv_sigma;
+                    if gd2 != 0.0 {
+                        let cl = if q.x > 0.0 {
+                            geom.closest_inside(p, &q.w)
+                        } else if q.x < 0.0 {
+                            q.closest
+                        } else {
+                            geom.closest(p)
+                        };
+                        closest_backward(&cl, gd2, &mut gv);
+                    }
+                    if gscale == 0.0 && g_zn == 0.0 {
+                        continue;
+                    }
+                    // Depth and attributes.
+                    let mut gz = -g_zn * zscale;
+                    let mut gwn = [0.0f64; 3];
+                    if s.perspective_correct {
+                        // c = z u, u = sum_k wn_k C_k / z_k.
+                        for ch in 0..c {
+                            let gc = g[ch] * gscale;
+                            if gc == 0.0 {
+                                continue;
+                            }
+                            let ck = [fa(0, ch), fa(1, ch), fa(2, ch)];
+                            let u = q.wn[0] * ck[0] * inv_d[0]
+                                + q.wn[1] * ck[1] * inv_d[1]
+                                + q.wn[2] * ck[2] * inv_d[2];
+                            gz += gc * u;
+                            let gu = q.z * gc;
+                            for k in 0..3 {
+                                gwn[k] += gu * ck[k] * inv_d[k];
+                                acc[k * stride + 4 + ch] += gu * q.wn[k] * inv_d[k];
+                                gdep[k] -= gu * ck[k] * q.wn[k] * inv_d[k] * inv_d[k];
+                            }
+                        }
+                    } else {
+                        for ch in 0..c {
+                            let gc = g[ch] * gscale;
+                            if gc == 0.0 {
+                                continue;
+                            }
+                            for k in 0..3 {
+                                gwn[k] += gc * fa(k, ch);
+                                acc[k * stride + 4 + ch] += gc * q.wn[k];
+                            }
+                        }
+                    }
+                    let gzinv = -q.z * q.z * gz;
+                    for k in 0..3 {
+                        gwn[k] += gzinv * inv_d[k];
+                        gdep[k] -= gzinv * q.wn[k] * inv_d[k] * inv_d[k];
+                    }
+                    // Clip-and-renormalise, then raw barycentrics w_k = n_k / sum n.
+                    let dot = gwn[0] * q.wn[0] + gwn[1] * q.wn[1] + gwn[2] * q.wn[2];
+                    let inv_sumwc = 1.0 / q.sumwc;
+                    let mut gw = [0.0; 3];
+                    for k in 0..3 {
+                        if q.w[k] > 0.0 && q.w[k] < 1.0 {
+                            gw[k] = (gwn[k] - dot) * inv_sumwc;
+                        }
+                    }
+                    let dot2 = gw[0] * q.w[0] + gw[1] * q.w[1] + gw[2] * q.w[2];
+                    for k in 0..3 {
+                        let gn = (gw[k] - dot2) * inv_area;
+                        if gn == 0.0 {
+                            continue;
+                        }
+                        let (i, j) = ((k + 1) % 3, (k + 2) % 3);
+                        let a = [v[i][0] - p[0], v[i][1] - p[1]];
+                        let b = [v[j][0] - p[0], v[j][1] - p[1]];
+                        // n_k = cross(a, b).
+                        gv[i][0] += gn * b[1];
+                        gv[i][1] -= gn * b[0];
+                        gv[j][0] -= gn * a[1];
+                        gv[j][1] += gn * a[0];
+                    }
+                }
             }
-            let (i, j) = ((k + 1) % 3, (k + 2) % 3);
-            let a = [v[i][0] - p[0], v[i][1] - p[1]];
-            let b = [v[j][0] - p[0], v[j][1] - p[1]];
-            // n_k = cross(a, b).
-            gv[i][0] += gn * b[1];
-            gv[i][1] -= gn * b[0];
-            gv[j][0] -= gn * a[1];
-            gv[j][1] += gn * a[0];
         }
-        // NDC and view depth to clip coordinates.
+        // NDC and view depth to clip coordinates (linear in the NDC gradient, so once per face).
         for k in 0..3 {
-            let g = ndc_to_clip(gv[k], v[k], d[k]);
+            let g = ndc_to_clip(gv[k], v[k], prep.depth[f[k] as usize]);
             let o = k * stride;
             acc[o] += g[0];
             acc[o + 1] += g[1];
