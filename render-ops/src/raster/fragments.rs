@@ -1,5 +1,6 @@
 //! Packed fragments: a CSR over pixels holding, for each covered pixel, its nearest fragments.
 
+use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use autodiff::Real;
@@ -7,7 +8,6 @@ use rayon::prelude::*;
 
 use super::bin::Bins;
 use super::clip::Rect;
-use super::edge::Setup;
 use super::{RasterError, RasterSettings, TILE_SIZE};
 
 /// Fragments of a rasterized image, packed: only covered pixels hold fragments.
@@ -199,45 +199,36 @@ impl<T: Real> Fragments<T> {
 }
 
 /// The fragments of one tile, packed in tile-local row-major pixel order (nearest first within a
-/// pixel), with their values computed by the tile pass while the faces' setups are in cache;
-/// assembly copies them, row segment by row segment, into the final arrays.
-pub(crate) struct TileOut<T> {
-    pub face: Vec<u32>,
-    pub bary: Vec<[T; 3]>,
-    pub depth: Vec<T>,
-    pub view_depth: Vec<T>,
-    pub dx: Vec<[T; 3]>,
-    pub dy: Vec<[T; 3]>,
+/// pixel): each fragment's face record id ([`Bins::rec`]) and NDC depth. Assembly computes
+/// the fragments' values ([`super::edge::Setup::values`]) from these straight into the final arrays.
+pub(crate) struct TileFrags {
+    pub idx: Vec<u32>,
+    pub depth: Vec<f64>,
     /// Fragment count per local pixel (`local_row * TILE_SIZE + local_col`); empty if none.
     pub counts: Vec<u16>,
-    /// Number of fragments in each local row.
-    pub row_len: [u32; TILE_SIZE],
+    /// `row_start[lr]..row_start[lr + 1]`: the fragments of local row `lr`.
+    pub row_start: [u32; TILE_SIZE + 1],
 }
 
-impl<T: Real> TileOut<T> {
+impl TileFrags {
     pub fn empty() -> Self {
         Self {
-            face: Vec::new(),
-            bary: Vec::new(),
+            idx: Vec::new(),
             depth: Vec::new(),
-            view_depth: Vec::new(),
-            dx: Vec::new(),
-            dy: Vec::new(),
             counts: Vec::new(),
-            row_len: [0; TILE_SIZE],
+            row_start: [0; TILE_SIZE + 1],
         }
     }
 
-    /// Packs a dense K-buffer (`k` slots per local pixel of indices into `setups`, `+inf` depth
-    /// when empty) and computes each fragment's values ([`Setup::values`]).
-    pub fn pack(
-        depth: &[f64],
-        idx: &[u32],
-        setups: &[(Setup, u32)],
-        rect: &Rect,
-        k: usize,
-        persp: bool,
-    ) -> Self {
+    /// Number of fragments in local row `lr`.
+    #[inline]
+    fn row_len(&self, lr: usize) -> usize {
+        (self.row_start[lr + 1] - self.row_start[lr]) as usize
+    }
+
+    /// Packs a dense K-buffer (`k` slots per local pixel of record ids, `+inf` depth when
+    /// empty) of the tile `rect`.
+    pub fn pack(depth: &[f64], idx: &[u32], rect: &Rect, k: usize) -> Self {
         let n = (rect.c1 - rect.c0) as usize + 1;
         let rows = (rect.r1 - rect.r0) as usize + 1;
         let mut out = Self::empty();
@@ -250,57 +241,46 @@ impl<T: Real> TileOut<T> {
         if total == 0 {
             return out;
         }
-        out.face.reserve_exact(total);
-        out.bary.reserve_exact(total);
+        out.idx.reserve_exact(total);
         out.depth.reserve_exact(total);
-        out.view_depth.reserve_exact(total);
-        out.dx.reserve_exact(total);
-        out.dy.reserve_exact(total);
         out.counts = vec![0; TILE_SIZE * TILE_SIZE];
         for lr in 0..rows {
             let p = lr * TILE_SIZE;
             let slots = p * k..(p + n) * k;
-            let before = out.face.len();
-            let rf = (rect.r0 as usize + lr) as f64;
-            for (j, ((cnt, dk), ik)) in out.counts[p..p + n]
+            for ((cnt, dk), ik) in out.counts[p..p + n]
                 .iter_mut()
                 .zip(depth[slots.clone()].chunks_exact(k))
                 .zip(idx[slots].chunks_exact(k))
-                .enumerate()
             {
-                let col = (rect.c0 as usize + j) as f64;
                 for (&d, &i) in dk.iter().zip(ik) {
                     if d > 1.0 {
                         break;
                     }
-                    let (st, face) = &setups[i as usize];
-                    let (bary, vd, dx, dy) = st.values::<T>(col, rf, persp);
-                    out.face.push(*face);
-                    out.bary.push(bary);
-                    out.depth.push(T::from_f64c(d));
-                    out.view_depth.push(vd);
-                    out.dx.push(dx);
-                    out.dy.push(dy);
+                    out.idx.push(i);
+                    out.depth.push(d);
                     *cnt += 1;
                 }
             }
-            out.row_len[lr] = (out.face.len() - before) as u32;
+            out.row_start[lr + 1] = out.idx.len() as u32;
+        }
+        for lr in rows..TILE_SIZE {
+            out.row_start[lr + 1] = out.row_start[rows];
         }
         out
     }
 }
 
-/// Mutable output slices of one image row.
+/// Uninitialised output slices of one image row.
 struct RowOut<'a, T> {
     row: usize,
     base: usize,
     offsets: &'a mut [u32],
-    face: &'a mut [u32],
-    bary: &'a mut [[T; 3]],
-    depth: &'a mut [T],
-    view_depth: &'a mut [T],
-    dx: &'a mut [[T; 3]],
-    dy: &'a mut [[T; 3]],
+    face: &'a mut [MaybeUninit<u32>],
+    bary: &'a mut [MaybeUninit<[T; 3]>],
+    depth: &'a mut [MaybeUninit<T>],
+    view_depth: &'a mut [MaybeUninit<T>],
+    dx: &'a mut [MaybeUninit<[T; 3]>],
+    dy: &'a mut [MaybeUninit<[T; 3]>],
 }
 
 fn split_sizes<'a, X>(mut v: &'a mut [X], sizes: &[usize]) -> Vec<&'a mut [X]> {
@@ -313,22 +293,24 @@ fn split_sizes<'a, X>(mut v: &'a mut [X], sizes: &[usize]) -> Vec<&'a mut [X]> {
     out
 }
 
-/// Assembles the tiles' fragments into the packed pixel-order layout, in parallel over image
-/// rows (each a contiguous run of pixels and fragments). The result does
+/// Assembles the tiles' fragments into the packed pixel-order layout, computing each
+/// fragment's values ([`super::edge::Setup::values`]) directly into the final (uninitialised) arrays, in
+/// parallel over image rows (each a contiguous run of pixels and fragments). The result does
 /// not depend on the thread count.
 pub(crate) fn assemble<T: Real>(
-    tiles: Vec<TileOut<T>>,
+    tiles: Vec<TileFrags>,
     bins: &Bins,
     s: &RasterSettings,
 ) -> Result<Fragments<T>, RasterError> {
     let (width, height, k) = (s.width, s.height, s.faces_per_pixel);
+    let persp = s.perspective_correct;
     let tx_n = bins.tiles_x;
     let row_frags: Vec<usize> = (0..height)
         .map(|r| {
             let (ty, lr) = (r / TILE_SIZE, r % TILE_SIZE);
             tiles[ty * tx_n..(ty + 1) * tx_n]
                 .iter()
-                .map(|t| t.row_len[lr] as usize)
+                .map(|t| t.row_len(lr))
                 .sum::<usize>()
         })
         .collect();
@@ -336,20 +318,14 @@ pub(crate) fn assemble<T: Real>(
     if total > u32::MAX as usize {
         return Err(RasterError::TooManyFragments { fragments: total });
     }
-    let zero3 = [T::zero(); 3];
-    let mut out = Fragments {
-        width,
-        height,
-        k,
-        offsets: vec![0u32; width * height + 1],
-        face: vec![0u32; total],
-        bary: vec![zero3; total],
-        depth: vec![T::zero(); total],
-        view_depth: vec![T::zero(); total],
-        dbary_dx: vec![zero3; total],
-        dbary_dy: vec![zero3; total],
-    };
-    out.offsets[width * height] = total as u32;
+    let mut offsets = vec![0u32; width * height + 1];
+    offsets[width * height] = total as u32;
+    let mut face = Vec::<u32>::with_capacity(total);
+    let mut bary = Vec::<[T; 3]>::with_capacity(total);
+    let mut depth = Vec::<T>::with_capacity(total);
+    let mut view_depth = Vec::<T>::with_capacity(total);
+    let mut dbary_dx = Vec::<[T; 3]>::with_capacity(total);
+    let mut dbary_dy = Vec::<[T; 3]>::with_capacity(total);
     let mut bases = Vec::with_capacity(height);
     let mut acc = 0usize;
     for &n in &row_frags {
@@ -357,14 +333,32 @@ pub(crate) fn assemble<T: Real>(
         acc += n;
     }
     let row_px = vec![width; height];
-    let rows: Vec<RowOut<'_, T>> = split_sizes(&mut out.offsets[..width * height], &row_px)
+    let rows: Vec<RowOut<'_, T>> = split_sizes(&mut offsets[..width * height], &row_px)
         .into_iter()
-        .zip(split_sizes(&mut out.face, &row_frags))
-        .zip(split_sizes(&mut out.bary, &row_frags))
-        .zip(split_sizes(&mut out.depth, &row_frags))
-        .zip(split_sizes(&mut out.view_depth, &row_frags))
-        .zip(split_sizes(&mut out.dbary_dx, &row_frags))
-        .zip(split_sizes(&mut out.dbary_dy, &row_frags))
+        .zip(split_sizes(
+            &mut face.spare_capacity_mut()[..total],
+            &row_frags,
+        ))
+        .zip(split_sizes(
+            &mut bary.spare_capacity_mut()[..total],
+            &row_frags,
+        ))
+        .zip(split_sizes(
+            &mut depth.spare_capacity_mut()[..total],
+            &row_frags,
+        ))
+        .zip(split_sizes(
+            &mut view_depth.spare_capacity_mut()[..total],
+            &row_frags,
+        ))
+        .zip(split_sizes(
+            &mut dbary_dx.spare_capacity_mut()[..total],
+            &row_frags,
+        ))
+        .zip(split_sizes(
+            &mut dbary_dy.spare_capacity_mut()[..total],
+            &row_frags,
+        ))
         .enumerate()
         .map(
             |(row, ((((((offsets, face), bary), depth), view_depth), dx), dy))| RowOut {
@@ -382,33 +376,58 @@ pub(crate) fn assemble<T: Real>(
         .collect();
     rows.into_par_iter().with_min_len(4).for_each(|ro| {
         let (ty, lr) = (ro.row / TILE_SIZE, ro.row % TILE_SIZE);
+        let rf = ro.row as f64;
         let mut pos = 0usize;
         for (tx, tile) in tiles[ty * tx_n..(ty + 1) * tx_n].iter().enumerate() {
             let c0 = tx * TILE_SIZE;
             let c1 = (c0 + TILE_SIZE).min(width);
             let offs = &mut ro.offsets[c0..c1];
-            if tile.row_len[lr] == 0 {
+            if tile.row_len(lr) == 0 {
                 offs.fill((ro.base + pos) as u32);
                 continue;
             }
-            let i0 = tile.row_len[..lr]
-                .iter()
-                .map(|&n| n as usize)
-                .sum::<usize>();
-            let n_row = tile.row_len[lr] as usize;
-            let (src, dst) = (i0..i0 + n_row, pos..pos + n_row);
-            ro.face[dst.clone()].copy_from_slice(&tile.face[src.clone()]);
-            ro.bary[dst.clone()].copy_from_slice(&tile.bary[src.clone()]);
-            ro.depth[dst.clone()].copy_from_slice(&tile.depth[src.clone()]);
-            ro.view_depth[dst.clone()].copy_from_slice(&tile.view_depth[src.clone()]);
-            ro.dx[dst.clone()].copy_from_slice(&tile.dx[src.clone()]);
-            ro.dy[dst].copy_from_slice(&tile.dy[src]);
+            let mut i = tile.row_start[lr] as usize;
             let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + (c1 - c0)];
-            for (o, &n) in offs.iter_mut().zip(counts) {
+            for (j, (o, &n)) in offs.iter_mut().zip(counts).enumerate() {
                 *o = (ro.base + pos) as u32;
-                pos += n as usize;
+                let col = (c0 + j) as f64;
+                for _ in 0..n {
+                    let rec = bins.rec(tile.idx[i]);
+                    let (b, vd, dx, dy) = rec.st.values::<T>(col, rf, persp);
+                    ro.face[pos].write(rec.face);
+                    ro.bary[pos].write(b);
+                    ro.depth[pos].write(T::from_f64c(tile.depth[i]));
+                    ro.view_depth[pos].write(vd);
+                    ro.dx[pos].write(dx);
+                    ro.dy[pos].write(dy);
+                    pos += 1;
+                    i += 1;
+                }
             }
         }
+        // Every slot of the row was written (checked before the lengths are set below).
+        assert_eq!(pos, ro.face.len(), "row {} fragment count", ro.row);
     });
-    Ok(out)
+    // SAFETY: the rows split `..total` of every array without overlap, and each row wrote
+    // all of its slots (asserted above); a panic there propagates before this point.
+    unsafe {
+        face.set_len(total);
+        bary.set_len(total);
+        depth.set_len(total);
+        view_depth.set_len(total);
+        dbary_dx.set_len(total);
+        dbary_dy.set_len(total);
+    }
+    Ok(Fragments {
+        width,
+        height,
+        k,
+        offsets,
+        face,
+        bary,
+        depth,
+        view_depth,
+        dbary_dx,
+        dbary_dy,
+    })
 }
