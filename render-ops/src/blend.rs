@@ -2,6 +2,7 @@
 //! pixel's nearest fragment and composites it over the background: output [H, W, C + 1] with
 //! the coverage (0 or 1) as the last channel (alpha).
 
+use std::mem::MaybeUninit;
 use std::sync::Arc;
 
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
@@ -36,12 +37,16 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
             ));
         }
         let cs = col.as_slice().expect("std");
-        let mut img = vec![T::zero(); h * w * (c + 1)];
+        let n = h * w * (c + 1);
+        let mut img = Vec::with_capacity(n);
+        let out = &mut img.spare_capacity_mut()[..n];
         match c {
-            3 => blend_rows::<T, 3>(f, cs, &self.background, &mut img),
-            1 => blend_rows::<T, 1>(f, cs, &self.background, &mut img),
-            _ => blend_rows::<T, 0>(f, cs, &self.background, &mut img),
+            3 => blend_rows::<T, 3>(f, cs, &self.background, out),
+            1 => blend_rows::<T, 1>(f, cs, &self.background, out),
+            _ => blend_rows::<T, 0>(f, cs, &self.background, out),
         }
+        // SAFETY: `blend_rows` wrote all `n` values of every pixel.
+        unsafe { img.set_len(n) };
         Ok(vec![
             ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c")
         ])
@@ -84,8 +89,13 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
 }
 
 /// The image rows of the hard blend for `C` channels (`C = 0`: `bg.len()`, known only at run
-/// time), in parallel over rows.
-fn blend_rows<T: Real, const C: usize>(f: &Fragments<T>, cs: &[T], bg: &[T], img: &mut [T]) {
+/// time), in parallel over rows, writing every value of the (uninitialised) image.
+fn blend_rows<T: Real, const C: usize>(
+    f: &Fragments<T>,
+    cs: &[T],
+    bg: &[T],
+    img: &mut [MaybeUninit<T>],
+) {
     let c = if C > 0 { C } else { bg.len() };
     let w = f.width;
     img.par_chunks_mut(w * (c + 1))
@@ -94,12 +104,15 @@ fn blend_rows<T: Real, const C: usize>(f: &Fragments<T>, cs: &[T], bg: &[T], img
             let offs = &f.offsets[row * w..=(row + 1) * w];
             for (x, px) in out.chunks_exact_mut(c + 1).enumerate() {
                 let (s, e) = (offs[x] as usize, offs[x + 1] as usize);
-                if s < e {
-                    px[..c].copy_from_slice(&cs[s * c..][..c]);
-                    px[c] = T::one();
+                let (src, alpha) = if s < e {
+                    (&cs[s * c..][..c], T::one())
                 } else {
-                    px[..c].copy_from_slice(&bg[..c]);
+                    (&bg[..c], T::zero())
+                };
+                for (o, &v) in px[..c].iter_mut().zip(src) {
+                    o.write(v);
                 }
+                px[c].write(alpha);
             }
         });
 }

@@ -100,7 +100,7 @@ pub(crate) fn bin_faces(
         .enumerate()
         .map(|(ci, fs)| {
             let mut counts = vec![0usize; nt + 1];
-            let mut recs = Vec::new();
+            let mut recs = Vec::with_capacity(fs.len());
             for (k, f) in fs.iter().enumerate() {
                 let idx = f.map(|i| i as usize);
                 let oc = [outcodes[idx[0]], outcodes[idx[1]], outcodes[idx[2]]];

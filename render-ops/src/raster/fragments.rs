@@ -199,22 +199,30 @@ impl<T: Real> Fragments<T> {
 }
 
 /// The fragments of one tile, packed in tile-local row-major pixel order (nearest first within a
-/// pixel): each fragment's face record id ([`Bins::rec`]) and NDC depth. Assembly computes
-/// the fragments' values ([`super::edge::Setup::values`]) from these straight into the final arrays.
-pub(crate) struct TileFrags {
-    pub idx: Vec<u32>,
-    pub depth: Vec<f64>,
+/// pixel), with their values computed by the tile pass while the faces' records are in cache;
+/// assembly copies them, row segment by row segment, into the final arrays.
+pub(crate) struct TileOut<T> {
+    pub face: Vec<u32>,
+    pub bary: Vec<[T; 3]>,
+    pub depth: Vec<T>,
+    pub view_depth: Vec<T>,
+    pub dx: Vec<[T; 3]>,
+    pub dy: Vec<[T; 3]>,
     /// Fragment count per local pixel (`local_row * TILE_SIZE + local_col`); empty if none.
     pub counts: Vec<u16>,
     /// `row_start[lr]..row_start[lr + 1]`: the fragments of local row `lr`.
     pub row_start: [u32; TILE_SIZE + 1],
 }
 
-impl TileFrags {
+impl<T: Real> TileOut<T> {
     pub fn empty() -> Self {
         Self {
-            idx: Vec::new(),
+            face: Vec::new(),
+            bary: Vec::new(),
             depth: Vec::new(),
+            view_depth: Vec::new(),
+            dx: Vec::new(),
+            dy: Vec::new(),
             counts: Vec::new(),
             row_start: [0; TILE_SIZE + 1],
         }
@@ -227,8 +235,16 @@ impl TileFrags {
     }
 
     /// Packs a dense K-buffer (`k` slots per local pixel of record ids, `+inf` depth when
-    /// empty) of the tile `rect`.
-    pub fn pack(depth: &[f64], idx: &[u32], rect: &Rect, k: usize) -> Self {
+    /// empty) of the tile `rect` and computes each fragment's values
+    /// ([`super::edge::Setup::values`]).
+    pub fn pack(
+        depth: &[f64],
+        idx: &[u32],
+        bins: &Bins,
+        rect: &Rect,
+        k: usize,
+        persp: bool,
+    ) -> Self {
         let n = (rect.c1 - rect.c0) as usize + 1;
         let rows = (rect.r1 - rect.r0) as usize + 1;
         let mut out = Self::empty();
@@ -241,33 +257,55 @@ impl TileFrags {
         if total == 0 {
             return out;
         }
-        out.idx.reserve_exact(total);
+        out.face.reserve_exact(total);
+        out.bary.reserve_exact(total);
         out.depth.reserve_exact(total);
+        out.view_depth.reserve_exact(total);
+        out.dx.reserve_exact(total);
+        out.dy.reserve_exact(total);
         out.counts = vec![0; TILE_SIZE * TILE_SIZE];
         for lr in 0..rows {
             let p = lr * TILE_SIZE;
             let slots = p * k..(p + n) * k;
-            for ((cnt, dk), ik) in out.counts[p..p + n]
+            let rf = (rect.r0 as usize + lr) as f64;
+            for (j, ((cnt, dk), ik)) in out.counts[p..p + n]
                 .iter_mut()
                 .zip(depth[slots.clone()].chunks_exact(k))
                 .zip(idx[slots].chunks_exact(k))
+                .enumerate()
             {
+                let col = (rect.c0 as usize + j) as f64;
                 for (&d, &i) in dk.iter().zip(ik) {
                     if d > 1.0 {
                         break;
                     }
-                    out.idx.push(i);
-                    out.depth.push(d);
+                    let rec = bins.rec(i);
+                    let (bary, vd, dx, dy) = rec.st.values::<T>(col, rf, persp);
+                    out.face.push(rec.face);
+                    out.bary.push(bary);
+                    out.depth.push(T::from_f64c(d));
+                    out.view_depth.push(vd);
+                    out.dx.push(dx);
+                    out.dy.push(dy);
                     *cnt += 1;
                 }
             }
-            out.row_start[lr + 1] = out.idx.len() as u32;
+            out.row_start[lr + 1] = out.face.len() as u32;
         }
         for lr in rows..TILE_SIZE {
             out.row_start[lr + 1] = out.row_start[rows];
         }
         out
     }
+}
+
+/// Copies `src` into the uninitialised `dst` (same length), as one `memcpy`.
+#[inline]
+fn write_copy<X: Copy>(dst: &mut [MaybeUninit<X>], src: &[X]) {
+    assert_eq!(dst.len(), src.len());
+    // SAFETY: both slices have `src.len()` elements, do not overlap (one is borrowed mutably),
+    // and `MaybeUninit<X>` has the layout of `X`.
+    unsafe { std::ptr::copy_nonoverlapping(src.as_ptr(), dst.as_mut_ptr().cast::<X>(), src.len()) }
 }
 
 /// Uninitialised output slices of one image row.
@@ -293,17 +331,15 @@ fn split_sizes<'a, X>(mut v: &'a mut [X], sizes: &[usize]) -> Vec<&'a mut [X]> {
     out
 }
 
-/// Assembles the tiles' fragments into the packed pixel-order layout, computing each
-/// fragment's values ([`super::edge::Setup::values`]) directly into the final (uninitialised) arrays, in
-/// parallel over image rows (each a contiguous run of pixels and fragments). The result does
-/// not depend on the thread count.
+/// Assembles the tiles' fragments into the packed pixel-order layout (final arrays allocated
+/// uninitialised and written once), in parallel over image rows (each a contiguous run of
+/// pixels and fragments). The result does not depend on the thread count.
 pub(crate) fn assemble<T: Real>(
-    tiles: Vec<TileFrags>,
+    tiles: Vec<TileOut<T>>,
     bins: &Bins,
     s: &RasterSettings,
 ) -> Result<Fragments<T>, RasterError> {
     let (width, height, k) = (s.width, s.height, s.faces_per_pixel);
-    let persp = s.perspective_correct;
     let tx_n = bins.tiles_x;
     let row_frags: Vec<usize> = (0..height)
         .map(|r| {
@@ -376,7 +412,6 @@ pub(crate) fn assemble<T: Real>(
         .collect();
     rows.into_par_iter().with_min_len(4).for_each(|ro| {
         let (ty, lr) = (ro.row / TILE_SIZE, ro.row % TILE_SIZE);
-        let rf = ro.row as f64;
         let mut pos = 0usize;
         for (tx, tile) in tiles[ty * tx_n..(ty + 1) * tx_n].iter().enumerate() {
             let c0 = tx * TILE_SIZE;
@@ -386,23 +421,21 @@ pub(crate) fn assemble<T: Real>(
                 offs.fill((ro.base + pos) as u32);
                 continue;
             }
-            let mut i = tile.row_start[lr] as usize;
+            let (i0, n_row) = (tile.row_start[lr] as usize, tile.row_len(lr));
+            let (src, dst) = (i0..i0 + n_row, pos..pos + n_row);
+            write_copy(&mut ro.face[dst.clone()], &tile.face[src.clone()]);
+            write_copy(&mut ro.bary[dst.clone()], &tile.bary[src.clone()]);
+            write_copy(&mut ro.depth[dst.clone()], &tile.depth[src.clone()]);
+            write_copy(
+                &mut ro.view_depth[dst.clone()],
+                &tile.view_depth[src.clone()],
+            );
+            write_copy(&mut ro.dx[dst.clone()], &tile.dx[src.clone()]);
+            write_copy(&mut ro.dy[dst], &tile.dy[src]);
             let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + (c1 - c0)];
-            for (j, (o, &n)) in offs.iter_mut().zip(counts).enumerate() {
+            for (o, &n) in offs.iter_mut().zip(counts) {
                 *o = (ro.base + pos) as u32;
-                let col = (c0 + j) as f64;
-                for _ in 0..n {
-                    let rec = bins.rec(tile.idx[i]);
-                    let (b, vd, dx, dy) = rec.st.values::<T>(col, rf, persp);
-                    ro.face[pos].write(rec.face);
-                    ro.bary[pos].write(b);
-                    ro.depth[pos].write(T::from_f64c(tile.depth[i]));
-                    ro.view_depth[pos].write(vd);
-                    ro.dx[pos].write(dx);
-                    ro.dy[pos].write(dy);
-                    pos += 1;
-                    i += 1;
-                }
+                pos += n as usize;
             }
         }
         // Every slot of the row was written (checked before the lengths are set below).
