@@ -189,7 +189,7 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
     // counting sort (`(higher vertex, face * 3 + k)` per entry), then by the higher vertex
     // within each vertex's short list.
     let nv = screen.px.len();
-    let mut start = vec![0u32; nv + 1];
+    let mut start = vec![0usize; nv + 1];
     for (fi, f) in faces.iter().enumerate() {
         if kind[fi] != Kind::Other {
             for k in 0..3 {
@@ -201,13 +201,13 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
         start[v + 1] += start[v];
     }
     let mut fill = start.clone();
-    let mut by_lo = vec![(0u32, 0u32); start[nv] as usize];
+    let mut by_lo = vec![(0u32, 0u32); start[nv]];
     for (fi, f) in faces.iter().enumerate() {
         if kind[fi] != Kind::Other {
             for k in 0..3 {
                 let (a, b) = (f[k], f[(k + 1) % 3]);
                 let slot = &mut fill[a.min(b) as usize];
-                by_lo[*slot as usize] = (a.max(b), (fi * 3 + k) as u32);
+                by_lo[*slot] = (a.max(b), (fi * 3 + k) as u32);
                 *slot += 1;
             }
         }
@@ -225,7 +225,7 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
         .fold(
             || (Vec::new(), Vec::new()),
             |(mut out, mut list), v| {
-                let (s0, s1) = (start[v] as usize, start[v + 1] as usize);
+                let (s0, s1) = (start[v], start[v + 1]);
                 list.clear();
                 list.extend_from_slice(&by_lo[s0..s1]);
                 list.sort_unstable();
