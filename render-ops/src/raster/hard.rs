@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use super::bin::{bin_faces, Bins};
 use super::clip::{ceil_u, floor_u, to_screen, Rect};
 use super::edge::Setup;
-use super::fragments::{assemble, Fragments, TileOut};
+use super::fragments::{assemble, Fragments, TileFrags};
 use super::{validate_inputs, RasterError, RasterSettings, TILE_SIZE};
 use crate::scatter::scatter_by_vertex;
 
@@ -74,7 +74,7 @@ pub fn rasterize<T: Real>(
         bins: &bins,
         s,
     };
-    let tiles: Vec<TileOut<T>> = (0..bins.num_tiles())
+    let tiles: Vec<TileFrags> = (0..bins.num_tiles())
         .into_par_iter()
         .map_init(
             || Scratch::new(s.faces_per_pixel),
@@ -85,13 +85,13 @@ pub fn rasterize<T: Real>(
 }
 
 /// Z-buffers the faces binned to tile `t` and packs the surviving fragments.
-fn raster_tile<T: Real>(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileOut<T> {
+fn raster_tile(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileFrags {
     let (s, verts) = (ctx.s, ctx.verts);
     let k = s.faces_per_pixel;
     let rect = ctx.bins.tile_rect(t, s.width, s.height);
     let mut faces = ctx.bins.tile_faces(t).peekable();
     if faces.peek().is_none() {
-        return TileOut::empty();
+        return TileFrags::empty();
     }
     sc.depth.fill(f64::INFINITY);
     for id in faces {
@@ -102,14 +102,7 @@ fn raster_tile<T: Real>(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileOut<T>
         }
         z_test_face(&rec.st, &rec.dz, &r, &rect, verts, sc, id, k);
     }
-    TileOut::pack(
-        &sc.depth,
-        &sc.idx,
-        ctx.bins,
-        &rect,
-        k,
-        s.perspective_correct,
-    )
+    TileFrags::pack(&sc.depth, &sc.idx, &rect, k)
 }
 
 /// Tests the pixels of `r` (inside tile `rect`) against one face (setup `st`, NDC depth plane
