@@ -34,11 +34,13 @@
 //!   parallel with rayon. Within a tile each face walks conservative per-row column spans (from
 //!   the edge functions and their error bounds) and only pixels in a span get the exact test, so
 //!   cost grows with covered pixels and faces. Each tile keeps the `K` nearest fragments per pixel
-//!   in a fixed-size per-thread K-buffer and packs them with their barycentrics, depths and
-//!   derivatives, computed right there while the tile's face setups are in cache; assembly
-//!   then copies each tile's row segments into the packed pixel-order output (allocated
-//!   uninitialised and written once), in parallel over image rows. Bins list faces in increasing index order and depth ties go to the lower face
-//!   index, so the result is bit-identical for any number of threads.
+//!   in a fixed-size per-thread K-buffer and packs their face records and depths; assembly then
+//!   finds where every tile row starts in the packed pixel-order output (prefix sums) and,
+//!   in parallel over tiles (whose face records are a small working set), computes each
+//!   fragment's barycentrics, depths and derivatives straight into the output arrays
+//!   (allocated uninitialised and written once). Bins list faces in increasing index order
+//!   and depth ties go to the lower face index, so the result is bit-identical for any number
+//!   of threads.
 //! * **Degenerate input.** Fragments whose `f64` `sum(e)` is not positive (slivers at the limit
 //!   of `f64` precision) are dropped; output values beyond the range of `T` are saturated, so
 //!   every fragment value is finite.
