@@ -2,6 +2,7 @@
 //! pixel's nearest fragment and composites it over the background: output [H, W, C + 1] with
 //! the coverage (0 or 1) as the last channel (alpha).
 
+use std::mem::MaybeUninit;
 use std::sync::Arc;
 
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
@@ -36,21 +37,16 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
             ));
         }
         let cs = col.as_slice().expect("std");
-        let mut img = vec![T::zero(); h * w * (c + 1)];
-        img.par_chunks_mut(w * (c + 1))
-            .enumerate()
-            .for_each(|(row, out)| {
-                for (x, px) in out.chunks_mut(c + 1).enumerate() {
-                    let p = row * w + x;
-                    let (s, e) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
-                    if s < e {
-                        px[..c].copy_from_slice(&cs[s * c..(s + 1) * c]);
-                        px[c] = T::one();
-                    } else {
-                        px[..c].copy_from_slice(&self.background);
-                    }
-                }
-            });
+        let n = h * w * (c + 1);
+        let mut img = Vec::with_capacity(n);
+        let out = &mut img.spare_capacity_mut()[..n];
+        match c {
+            3 => blend_rows::<T, 3>(f, cs, &self.background, out),
+            1 => blend_rows::<T, 1>(f, cs, &self.background, out),
+            _ => blend_rows::<T, 0>(f, cs, &self.background, out),
+        }
+        // SAFETY: `blend_rows` wrote all `n` values of every pixel.
+        unsafe { img.set_len(n) };
         Ok(vec![
             ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c")
         ])
@@ -64,17 +60,61 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
         let g = ctx.grad_outputs[0].as_standard_layout();
         let gs = g.as_slice().expect("std");
         let mut gc = vec![T::zero(); f.face.len() * c];
-        // Each fragment is the first of at most one pixel: a direct write per pixel.
-        for p in 0..f.width * f.height {
-            let (s, e) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
-            if s < e {
-                gc[s * c..(s + 1) * c].copy_from_slice(&gs[p * (c + 1)..p * (c + 1) + c]);
-            }
+        // Each fragment is the first of at most one pixel: a direct write per pixel, in
+        // parallel over image rows (each a contiguous run of fragments).
+        let w = f.width;
+        let mut rows: Vec<(usize, &mut [T])> = Vec::with_capacity(f.height);
+        let mut rest = &mut gc[..];
+        for r in 0..f.height {
+            let n = (f.offsets[(r + 1) * w] - f.offsets[r * w]) as usize;
+            let (a, b) = rest.split_at_mut(n * c);
+            rows.push((r, a));
+            rest = b;
         }
+        rows.into_par_iter().with_min_len(8).for_each(|(r, out)| {
+            let base = f.offsets[r * w] as usize;
+            for x in 0..w {
+                let p = r * w + x;
+                let (s, e) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
+                if s < e {
+                    out[(s - base) * c..(s - base + 1) * c]
+                        .copy_from_slice(&gs[p * (c + 1)..p * (c + 1) + c]);
+                }
+            }
+        });
         Ok(vec![Some(
             ArrayD::from_shape_vec(IxDyn(&[f.face.len(), c]), gc).expect("n c"),
         )])
     }
+}
+
+/// The image rows of the hard blend for `C` channels (`C = 0`: `bg.len()`, known only at run
+/// time), in parallel over rows, writing every value of the (uninitialised) image.
+fn blend_rows<T: Real, const C: usize>(
+    f: &Fragments<T>,
+    cs: &[T],
+    bg: &[T],
+    img: &mut [MaybeUninit<T>],
+) {
+    let c = if C > 0 { C } else { bg.len() };
+    let w = f.width;
+    img.par_chunks_mut(w * (c + 1))
+        .enumerate()
+        .for_each(|(row, out)| {
+            let offs = &f.offsets[row * w..=(row + 1) * w];
+            for (x, px) in out.chunks_exact_mut(c + 1).enumerate() {
+                let (s, e) = (offs[x] as usize, offs[x + 1] as usize);
+                let (src, alpha) = if s < e {
+                    (&cs[s * c..][..c], T::one())
+                } else {
+                    (&bg[..c], T::zero())
+                };
+                for (o, &v) in px[..c].iter_mut().zip(src) {
+                    o.write(v);
+                }
+                px[c].write(alpha);
+            }
+        });
 }
 
 /// Hard z-buffer compositing of fragment colours [N, C] over `background` (C values):

@@ -40,25 +40,11 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
         let a = attr.as_slice().expect("standard");
         let b = bary.as_slice().expect("standard");
         let mut out = vec![T::zero(); n * c];
-        out.par_chunks_mut(ROWS_PER_TASK * c.max(1))
-            .enumerate()
-            .for_each(|(blk, chunk)| {
-                // `chunk` is non-empty, so c >= 1.
-                let i0 = blk * ROWS_PER_TASK;
-                let rows = chunk
-                    .chunks_exact_mut(c)
-                    .zip(as_rows(b)[i0..].iter())
-                    .zip(&self.fragments.face[i0..]);
-                for ((orow, bi), &fi) in rows {
-                    let f = self.faces[fi as usize];
-                    let a0 = &a[f[0] as usize * c..][..c];
-                    let a1 = &a[f[1] as usize * c..][..c];
-                    let a2 = &a[f[2] as usize * c..][..c];
-                    for (((o, &x0), &x1), &x2) in orow.iter_mut().zip(a0).zip(a1).zip(a2) {
-                        *o = bi[0] * x0 + bi[1] * x1 + bi[2] * x2;
-                    }
-                }
-            });
+        match c {
+            3 => interpolate_rows::<T, 3>(&self.fragments.face, &self.faces, a, b, c, &mut out),
+            1 => interpolate_rows::<T, 1>(&self.fragments.face, &self.faces, a, b, c, &mut out),
+            _ => interpolate_rows::<T, 0>(&self.fragments.face, &self.faces, a, b, c, &mut out),
+        }
         Ok(vec![
             ArrayD::from_shape_vec(IxDyn(&[n, c]), out).expect("n x c")
         ])
@@ -76,16 +62,23 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
         let n = self.fragments.face.len();
         let g_attr = ctx.needs_grad[0].then(|| {
             let mut ga = vec![T::zero(); a.len()];
-            for i in 0..n {
-                let f = self.faces[self.fragments.face[i] as usize];
-                for k in 0..3 {
-                    let bk = b[3 * i + k];
-                    let base = f[k] as usize * c;
-                    for ch in 0..c {
-                        ga[base + ch] += bk * g[i * c + ch];
+            // Scatter in fragment order for every vertex, parallel over vertex blocks.
+            let visit = |vr: std::ops::Range<usize>, out: &mut [T]| {
+                for i in 0..n {
+                    let f = self.faces[self.fragments.face[i] as usize];
+                    for k in 0..3 {
+                        let v = f[k] as usize;
+                        if vr.contains(&v) {
+                            let bk = b[3 * i + k];
+                            let o = &mut out[(v - vr.start) * c..][..c];
+                            for (o, &gc) in o.iter_mut().zip(&g[i * c..][..c]) {
+                                *o += bk * gc;
+                            }
+                        }
                     }
                 }
-            }
+            };
+            crate::scatter::scatter_by_vertex(&mut ga, c, visit);
             ArrayD::from_shape_vec(IxDyn(attr.shape()), ga).expect("same shape")
         });
         let g_bary = ctx.needs_grad[1].then(|| {
@@ -106,6 +99,38 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
         });
         Ok(vec![g_attr, g_bary])
     }
+}
+
+/// Interpolation of `C` channels (`C = 0`: `c`, known only at run time) into `out` ([N, C]),
+/// in parallel over blocks of fragments.
+fn interpolate_rows<T: Real, const C: usize>(
+    frag_face: &[u32],
+    faces: &[[u32; 3]],
+    a: &[T],
+    b: &[T],
+    c: usize,
+    out: &mut [T],
+) {
+    let c = if C > 0 { C } else { c };
+    out.par_chunks_mut(ROWS_PER_TASK * c.max(1))
+        .enumerate()
+        .for_each(|(blk, chunk)| {
+            // `chunk` is non-empty, so c >= 1.
+            let i0 = blk * ROWS_PER_TASK;
+            let rows = chunk
+                .chunks_exact_mut(c)
+                .zip(as_rows(b)[i0..].iter())
+                .zip(&frag_face[i0..]);
+            for ((orow, bi), &fi) in rows {
+                let f = faces[fi as usize];
+                let a0 = &a[f[0] as usize * c..][..c];
+                let a1 = &a[f[1] as usize * c..][..c];
+                let a2 = &a[f[2] as usize * c..][..c];
+                for (((o, &x0), &x1), &x2) in orow.iter_mut().zip(a0).zip(a1).zip(a2) {
+                    *o = bi[0] * x0 + bi[1] * x1 + bi[2] * x2;
+                }
+            }
+        });
 }
 
 /// Vertex attributes [V, C] interpolated at every fragment: [N, C].

@@ -18,6 +18,7 @@ pub mod obj;
 pub mod pipeline;
 pub mod raster;
 pub mod rasterize;
+mod scatter;
 pub mod scene;
 pub mod shade;
 pub mod soft;

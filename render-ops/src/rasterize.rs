@@ -35,6 +35,12 @@ pub fn clip_rows<T: Real>(clip: &Tensor<T>) -> Result<Vec<[T; 4]>, RenderError> 
         )
         .into());
     }
+    if let Some(s) = clip.as_slice() {
+        return Ok(s
+            .chunks_exact(4)
+            .map(|r| [r[0], r[1], r[2], r[3]])
+            .collect());
+    }
     Ok(clip
         .outer_iter()
         .map(|r| [r[0], r[1], r[2], r[3]])

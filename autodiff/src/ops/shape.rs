@@ -142,6 +142,35 @@ impl<T: Real> Op<T> for SliceOp {
 /// Concatenation of several tensors along an existing axis.
 pub struct ConcatOp(pub usize);
 
+/// Concatenation of standard-layout tensors along `ax` as row copies: for each index of the
+/// axes before `ax`, each input's contiguous block in turn. `None` when an input is not in
+/// standard layout or the shapes differ off `ax` (the general path handles and reports those).
+fn concat_standard<T: Real>(inputs: &[&Tensor<T>], ax: usize) -> Option<Tensor<T>> {
+    let first = inputs[0].shape();
+    let outer: usize = first[..ax].iter().product();
+    let mut shape = first.to_vec();
+    shape[ax] = 0;
+    let mut inner = Vec::with_capacity(inputs.len());
+    let mut slices = Vec::with_capacity(inputs.len());
+    for t in inputs {
+        let sh = t.shape();
+        if sh.len() != first.len() || sh[..ax] != first[..ax] || sh[ax + 1..] != first[ax + 1..] {
+            return None;
+        }
+        shape[ax] += sh[ax];
+        inner.push(sh[ax..].iter().product::<usize>());
+        slices.push(t.as_slice()?);
+    }
+    let row: usize = inner.iter().sum();
+    let mut out = Vec::with_capacity(outer * row);
+    for o in 0..outer {
+        for (s, &n) in slices.iter().zip(&inner) {
+            out.extend_from_slice(&s[o * n..(o + 1) * n]);
+        }
+    }
+    ArrayD::from_shape_vec(IxDyn(&shape), out).ok()
+}
+
 impl<T: Real> Op<T> for ConcatOp {
     fn name(&self) -> &'static str {
         "concat"
@@ -158,6 +187,9 @@ impl<T: Real> Op<T> for ConcatOp {
                 &shapes,
                 format!("axis {} out of range", self.0),
             ));
+        }
+        if let Some(y) = concat_standard(inputs, self.0) {
+            return Ok(vec![y]);
         }
         ndarray::concatenate(Axis(self.0), &views)
             .map(|y| vec![into_standard(y)])

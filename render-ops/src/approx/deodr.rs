@@ -185,49 +185,77 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
             }
         })
         .collect();
-    // Undirected edges of front and invalid faces, grouped by sorting: (key, face * 3 + k).
-    let mut keyed: Vec<(u64, u32)> = Vec::new();
+    // Undirected edges of front and invalid faces, grouped by their lower vertex with a
+    // counting sort (`(higher vertex, face * 3 + k)` per entry), then by the higher vertex
+    // within each vertex's short list.
+    let nv = screen.px.len();
+    let mut start = vec![0usize; nv + 1];
     for (fi, f) in faces.iter().enumerate() {
-        if kind[fi] == Kind::Other {
-            continue;
-        }
-        for k in 0..3 {
-            let (a, b) = (f[k], f[(k + 1) % 3]);
-            let key = ((a.min(b) as u64) << 32) | a.max(b) as u64;
-            keyed.push((key, (fi * 3 + k) as u32));
+        if kind[fi] != Kind::Other {
+            for k in 0..3 {
+                start[f[k].min(f[(k + 1) % 3]) as usize + 1] += 1;
+            }
         }
     }
-    keyed.par_sort_unstable();
-    let mut sil: Vec<(f64, u32)> = Vec::new();
-    let mut i = 0;
-    while i < keyed.len() {
-        let mut j = i + 1;
-        while j < keyed.len() && keyed[j].0 == keyed[i].0 {
-            j += 1;
-        }
-        let group = &keyed[i..j];
-        let fronts = group
-            .iter()
-            .filter(|&&(_, fk)| kind[fk as usize / 3] == Kind::Front)
-            .count();
-        let invalid = group
-            .iter()
-            .any(|&(_, fk)| kind[fk as usize / 3] == Kind::Invalid);
-        if fronts == 1 && !invalid {
-            let fk = group
-                .iter()
-                .find(|&&(_, fk)| kind[fk as usize / 3] == Kind::Front)
-                .expect("one front face")
-                .1;
-            let f = faces[fk as usize / 3];
-            let depth: f64 = f
-                .iter()
-                .map(|&v| screen.clip[v as usize][2] / screen.w[v as usize])
-                .sum();
-            sil.push((depth, fk));
-        }
-        i = j;
+    for v in 0..nv {
+        start[v + 1] += start[v];
     }
+    let mut fill = start.clone();
+    let mut by_lo = vec![(0u32, 0u32); start[nv]];
+    for (fi, f) in faces.iter().enumerate() {
+        if kind[fi] != Kind::Other {
+            for k in 0..3 {
+                let (a, b) = (f[k], f[(k + 1) % 3]);
+                let slot = &mut fill[a.min(b) as usize];
+                by_lo[*slot] = (a.max(b), (fi * 3 + k) as u32);
+                *slot += 1;
+            }
+        }
+    }
+    let face_depth = |fk: u32| -> f64 {
+        faces[fk as usize / 3]
+            .iter()
+            .map(|&v| screen.clip[v as usize][2] / screen.w[v as usize])
+            .sum()
+    };
+    // Edges shared by exactly one front face and no invalid one, in any order (sorted below).
+    let mut sil: Vec<(f64, u32)> = (0..nv)
+        .into_par_iter()
+        .with_min_len(1024)
+        .fold(
+            || (Vec::new(), Vec::new()),
+            |(mut out, mut list), v| {
+                let (s0, s1) = (start[v], start[v + 1]);
+                list.clear();
+                list.extend_from_slice(&by_lo[s0..s1]);
+                list.sort_unstable();
+                let mut i = 0;
+                while i < list.len() {
+                    let mut j = i + 1;
+                    while j < list.len() && list[j].0 == list[i].0 {
+                        j += 1;
+                    }
+                    let group = &list[i..j];
+                    let mut fronts = group
+                        .iter()
+                        .filter(|&&(_, fk)| kind[fk as usize / 3] == Kind::Front);
+                    let front = fronts.next();
+                    let invalid = group
+                        .iter()
+                        .any(|&(_, fk)| kind[fk as usize / 3] == Kind::Invalid);
+                    if let (Some(&(_, fk)), None, false) = (front, fronts.next(), invalid) {
+                        out.push((face_depth(fk), fk));
+                    }
+                    i = j;
+                }
+                (out, list)
+            },
+        )
+        .map(|(out, _)| out)
+        .reduce(Vec::new, |mut a, b| {
+            a.extend(b);
+            a
+        });
     // DEODR's order: farthest face first (sum of depths), then face index and edge.
     sil.sort_unstable_by(|a, b| match b.0.total_cmp(&a.0) {
         Ordering::Equal => a.1.cmp(&b.1),

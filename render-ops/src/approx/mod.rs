@@ -211,32 +211,53 @@ pub(crate) fn render_hard<T: Real>(
     let a = a.as_slice().expect("standard");
     let (h, w) = (frags.height, frags.width);
     let mut img = vec![T::zero(); h * w * (c + 1)];
+    match c {
+        3 => render_hard_rows::<T, 3>(frags, faces, bg, a, &mut img),
+        1 => render_hard_rows::<T, 1>(frags, faces, bg, a, &mut img),
+        _ => render_hard_rows::<T, 0>(frags, faces, bg, a, &mut img),
+    }
+    Ok(ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c"))
+}
+
+/// The rows of [`render_hard`], for `C` channels (`C = 0`: `bg.len()`, known only at run
+/// time), in parallel over image rows.
+fn render_hard_rows<T: Real, const C: usize>(
+    frags: &Fragments<T>,
+    faces: &[[u32; 3]],
+    bg: &[T],
+    a: &[T],
+    img: &mut [T],
+) {
+    let c = if C > 0 { C } else { bg.len() };
+    let w = frags.width;
     img.par_chunks_mut(w * (c + 1))
         .enumerate()
         .for_each(|(row, out)| {
-            for (x, px) in out.chunks_mut(c + 1).enumerate() {
-                let p = row * w + x;
-                let r = frags.pixel_range(p);
-                if r.is_empty() {
-                    px[..c].copy_from_slice(bg);
+            let offs = &frags.offsets[row * w..=(row + 1) * w];
+            for (x, px) in out.chunks_exact_mut(c + 1).enumerate() {
+                let (i, e) = (offs[x] as usize, offs[x + 1] as usize);
+                if i == e {
+                    px[..c].copy_from_slice(&bg[..c]);
                     continue;
                 }
-                let i = r.start;
                 let f = faces[frags.face[i] as usize];
                 let b = frags.bary[i];
+                let (a0, a1, a2) = (
+                    &a[f[0] as usize * c..][..c],
+                    &a[f[1] as usize * c..][..c],
+                    &a[f[2] as usize * c..][..c],
+                );
                 for ch in 0..c {
-                    px[ch] = b[0] * a[f[0] as usize * c + ch]
-                        + b[1] * a[f[1] as usize * c + ch]
-                        + b[2] * a[f[2] as usize * c + ch];
+                    px[ch] = b[0] * a0[ch] + b[1] * a1[ch] + b[2] * a2[ch];
                 }
                 px[c] = T::one();
             }
         });
-    Ok(ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c"))
 }
 
 /// Exact gradient of the hard render with respect to the attributes: `dL/dA[f_k] += b_k dL/dI_p`
-/// over covered pixels, in pixel order.
+/// over covered pixels, in pixel order for every vertex (parallel over vertex blocks,
+/// [`crate::scatter::scatter_by_vertex`]).
 pub(crate) fn attribute_grad<T: Real>(
     frags: &Fragments<T>,
     faces: &[[u32; 3]],
@@ -245,21 +266,27 @@ pub(crate) fn attribute_grad<T: Real>(
 ) -> Tensor<T> {
     let c = attrs_shape[1];
     let mut ga = vec![T::zero(); attrs_shape[0] * c];
-    for p in 0..frags.num_pixels() {
-        let r = frags.pixel_range(p);
-        if r.is_empty() {
-            continue;
-        }
-        let i = r.start;
-        let f = faces[frags.face[i] as usize];
-        let b = frags.bary[i];
-        for k in 0..3 {
-            let base = f[k] as usize * c;
-            for ch in 0..c {
-                ga[base + ch] += b[k] * g[p * (c + 1) + ch];
+    let visit = |vr: std::ops::Range<usize>, out: &mut [T]| {
+        for p in 0..frags.num_pixels() {
+            let (i, e) = (frags.offsets[p] as usize, frags.offsets[p + 1] as usize);
+            if i == e {
+                continue;
+            }
+            let f = faces[frags.face[i] as usize];
+            let b = frags.bary[i];
+            let gp = &g[p * (c + 1)..][..c];
+            for k in 0..3 {
+                let v = f[k] as usize;
+                if vr.contains(&v) {
+                    let o = &mut out[(v - vr.start) * c..][..c];
+                    for (o, &gc) in o.iter_mut().zip(gp) {
+                        *o += b[k] * gc;
+                    }
+                }
             }
         }
-    }
+    };
+    crate::scatter::scatter_by_vertex(&mut ga, c, visit);
     ArrayD::from_shape_vec(IxDyn(attrs_shape), ga).expect("same shape")
 }
 
@@ -474,13 +501,19 @@ impl<T: Real> HardRender<T> {
 /// NDC depth of each pixel's nearest fragment (infinity where nothing is covered): the
 /// z-buffer that boundary terms test against.
 pub(crate) fn depth_buffer<T: Real>(frags: &Fragments<T>) -> Vec<f64> {
-    (0..frags.num_pixels())
-        .map(|p| {
-            frags
-                .nearest(p)
-                .map_or(f64::INFINITY, |f| f.depth.to_f64c())
-        })
-        .collect()
+    let mut z = vec![0.0; frags.num_pixels()];
+    z.par_chunks_mut(4096).enumerate().for_each(|(ci, out)| {
+        let p0 = ci * 4096;
+        for (j, o) in out.iter_mut().enumerate() {
+            let (s, e) = (frags.offsets[p0 + j], frags.offsets[p0 + j + 1]);
+            *o = if s < e {
+                frags.depth[s as usize].to_f64c()
+            } else {
+                f64::INFINITY
+            };
+        }
+    });
+    z
 }
 
 /// Bins items by the image lines (rows or columns) they reach: `ranges[i]` is the inclusive

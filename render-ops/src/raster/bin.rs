@@ -1,29 +1,44 @@
-//! Binning faces into screen tiles by their clipped screen bounding boxes.
+//! Binning faces into screen tiles by their clipped screen bounding boxes, with each binned
+//! face's setup computed once.
 //!
-//! Faces are split into fixed-size chunks (the size depends only on the face and tile counts,
-//! never on the thread count); each chunk builds, in parallel, a small CSR from tiles to its faces
-//! in increasing face order. A tile's face list is the concatenation over chunks in chunk order,
-//! so it is sorted by face index and identical for any rayon pool.
+//! Faces are split into fixed-size chunks (a power of two that depends only on the face and
+//! tile counts, never on the thread count); each chunk computes, in parallel and in face order,
+//! the record ([`FaceRec`]: edge functions, depth plane, box) of every face that survives
+//! culling, and a small CSR from tiles to its records. A tile's record list is the
+//! concatenation over chunks in chunk order, so it is sorted by face index and identical for
+//! any rayon pool. Records are read by the tile pass and by assembly from these contiguous
+//! per-chunk arrays, not gathered per tile from the (arbitrarily ordered) faces and vertices.
 
 use rayon::prelude::*;
 
 use super::clip::{screen_bounds, Rect};
-use super::edge::orientation;
+use super::edge::Setup;
 use super::{RasterSettings, TILE_SIZE};
 
-/// Tile-to-face lists of one chunk of faces.
-struct ChunkBins {
-    /// `offsets[t]..offsets[t + 1]` index `faces` for tile `t`.
-    offsets: Vec<usize>,
-    faces: Vec<u32>,
+/// Per-face data of a binned face: its setup (edge functions for its whole box), NDC depth
+/// plane `d = dz[0] col + dz[1] row + dz[2]`, pixel box and face index.
+pub(crate) struct FaceRec {
+    pub st: Setup,
+    pub dz: [f64; 3],
+    pub rect: Rect,
+    pub face: u32,
 }
 
-/// Faces binned per tile, plus each face's pixel bounding box.
+/// Records and tile-to-record lists of one chunk of faces.
+struct ChunkBins {
+    /// `offsets[t]..offsets[t + 1]` index `list` for tile `t`.
+    offsets: Vec<usize>,
+    /// Global record ids ([`Bins::rec`]).
+    list: Vec<u32>,
+    recs: Vec<FaceRec>,
+}
+
+/// Faces binned per tile, as records.
 pub(crate) struct Bins {
     pub tiles_x: usize,
     pub tiles_y: usize,
-    /// Pixel bounding box of each face (empty when culled).
-    pub rects: Vec<Rect>,
+    /// `log2` of the chunk size: record id = `chunk << shift | index in chunk`.
+    shift: u32,
     chunks: Vec<ChunkBins>,
 }
 
@@ -33,13 +48,20 @@ impl Bins {
         self.tiles_x * self.tiles_y
     }
 
-    /// Faces overlapping tile `t`, in increasing face order.
+    /// Record ids of the faces overlapping tile `t`, in increasing face order.
     #[inline]
     pub fn tile_faces(&self, t: usize) -> impl Iterator<Item = u32> + '_ {
         self.chunks.iter().flat_map(move |c| {
             let (s, e) = (c.offsets[t], c.offsets[t + 1]);
-            c.faces[s..e].iter().copied()
+            c.list[s..e].iter().copied()
         })
+    }
+
+    /// The record with id `id`.
+    #[inline(always)]
+    pub fn rec(&self, id: u32) -> &FaceRec {
+        let c = &self.chunks[(id >> self.shift) as usize];
+        &c.recs[(id & ((1u32 << self.shift) - 1)) as usize]
     }
 
     /// Pixel rectangle of tile `t`.
@@ -55,8 +77,8 @@ impl Bins {
     }
 }
 
-/// Culls faces (frustum, degenerate, optionally back-facing), computes their screen boxes and bins
-/// them into tiles.
+/// Culls faces (frustum, degenerate, optionally back-facing), computes their screen boxes and
+/// setups and bins them into tiles.
 pub(crate) fn bin_faces(
     verts: &[[f64; 4]],
     proj: &[[f64; 2]],
@@ -68,44 +90,53 @@ pub(crate) fn bin_faces(
     let tiles_y = s.height.div_ceil(TILE_SIZE);
     let nt = tiles_x * tiles_y;
     // Keep chunks x tiles counters bounded (about 4M) for huge images.
-    let chunk = 4096usize.max((faces.len() as u128 * nt as u128 / (1u128 << 22)) as usize + 1);
+    let chunk = 4096usize
+        .max((faces.len() as u128 * nt as u128 / (1u128 << 22)) as usize + 1)
+        .next_power_of_two();
+    let shift = chunk.trailing_zeros();
     let (w, h) = (s.width as u32, s.height as u32);
-    let mut rects = vec![Rect::EMPTY; faces.len()];
-    let chunks: Vec<ChunkBins> = rects
-        .par_chunks_mut(chunk)
-        .zip(faces.par_chunks(chunk))
+    let chunks: Vec<ChunkBins> = faces
+        .par_chunks(chunk)
         .enumerate()
-        .map(|(ci, (rects, fs))| {
+        .map(|(ci, fs)| {
             let mut counts = vec![0usize; nt + 1];
-            for (r, f) in rects.iter_mut().zip(fs) {
+            let mut recs = Vec::with_capacity(fs.len());
+            for (k, f) in fs.iter().enumerate() {
                 let idx = f.map(|i| i as usize);
                 let oc = [outcodes[idx[0]], outcodes[idx[1]], outcodes[idx[2]]];
                 let pj = [proj[idx[0]], proj[idx[1]], proj[idx[2]]];
                 let Some(b) = screen_bounds(verts, idx, &pj, oc, w, h) else {
                     continue;
                 };
-                // Front faces have det M < 0 in the y-down screen frame. (Degenerate faces,
-                // det M == 0, are dropped by the tile pass's setup.)
-                if s.cull_backfaces && orientation(&idx.map(|i| verts[i])) >= 0 {
+                let v = idx.map(|i| verts[i]);
+                // Degenerate faces (det M == 0) and slivers without usable barycentrics give
+                // no setup and no fragments. The setup's error bounds hold over the whole box,
+                // so one setup serves every tile.
+                // Culled back faces (det M > 0 in the y-down screen frame) give none either.
+                let Some(st) = Setup::new(&v, *f, b.c1 as f64, b.r1 as f64, s.cull_backfaces)
+                else {
                     continue;
-                }
-                *r = b;
+                };
                 for ty in b.r0 as usize / TILE_SIZE..=b.r1 as usize / TILE_SIZE {
                     for tx in b.c0 as usize / TILE_SIZE..=b.c1 as usize / TILE_SIZE {
                         counts[ty * tiles_x + tx + 1] += 1;
                     }
                 }
+                recs.push(FaceRec {
+                    dz: st.depth_plane(&v),
+                    st,
+                    rect: b,
+                    face: (ci * chunk + k) as u32,
+                });
             }
             for t in 0..nt {
                 counts[t + 1] += counts[t];
             }
             let mut cursor = counts.clone();
             let mut list = vec![0u32; counts[nt]];
-            let base = (ci * chunk) as u32;
-            for (k, r) in rects.iter().enumerate() {
-                if r.is_empty() {
-                    continue;
-                }
+            let base = (ci << shift) as u32;
+            for (k, r) in recs.iter().enumerate() {
+                let r = &r.rect;
                 for ty in r.r0 as usize / TILE_SIZE..=r.r1 as usize / TILE_SIZE {
                     for tx in r.c0 as usize / TILE_SIZE..=r.c1 as usize / TILE_SIZE {
                         let t = ty * tiles_x + tx;
@@ -116,14 +147,15 @@ pub(crate) fn bin_faces(
             }
             ChunkBins {
                 offsets: counts,
-                faces: list,
+                list,
+                recs,
             }
         })
         .collect();
     Bins {
         tiles_x,
         tiles_y,
-        rects,
+        shift,
         chunks,
     }
 }

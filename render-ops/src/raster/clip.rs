@@ -26,14 +26,6 @@ pub(crate) struct Rect {
 }
 
 impl Rect {
-    /// The empty rectangle.
-    pub const EMPTY: Rect = Rect {
-        c0: 1,
-        c1: 0,
-        r0: 1,
-        r1: 0,
-    };
-
     #[inline]
     pub fn is_empty(&self) -> bool {
         self.c0 > self.c1 || self.r0 > self.r1

@@ -141,30 +141,6 @@ fn exact_det_sign(v: &[[f64; 4]; 3]) -> i32 {
     t.sign()
 }
 
-/// Exact sign of `det M` of a face, `M = [v0 v1 v2]` over `(X, Y, W)`: negative for faces that
-/// are counter-clockwise in NDC (the viewport flips y), zero for degenerate ones.
-#[inline]
-pub(crate) fn orientation(v: &[[f64; 4]; 3]) -> i32 {
-    let [p, q, r] = v;
-    let m0 = q[1] * r[2] - q[2] * r[1];
-    let m1 = q[2] * r[0] - q[0] * r[2];
-    let m2 = q[0] * r[1] - q[1] * r[0];
-    let det = p[0] * m0 + p[1] * m1 + p[2] * m2;
-    let perm = p[0].abs() * ((q[1] * r[2]).abs() + (q[2] * r[1]).abs())
-        + p[1].abs() * ((q[2] * r[0]).abs() + (q[0] * r[2]).abs())
-        + p[2].abs() * ((q[0] * r[1]).abs() + (q[1] * r[0]).abs());
-    if !perm.is_finite() {
-        return 0;
-    }
-    if det > ERR * perm + ERR_ABS {
-        1
-    } else if det < -(ERR * perm + ERR_ABS) {
-        -1
-    } else {
-        exact_det_sign(v)
-    }
-}
-
 /// Canonical endpoints `(lo, hi)` of edge `i` (opposite vertex `i`) and the sign mapping the
 /// canonical `lo x hi` to `v_{i+1} x v_{i+2}`.
 #[inline(always)]
@@ -217,7 +193,8 @@ pub(crate) struct Setup {
     pub bnd: [f64; 3],
     /// `1 / |det M|` in the screen frame (`|det M| = sum_i e_i(p) w_i` for every `p`).
     pub inv_det: f64,
-    /// Orientation sign of `det M` (see [`orientation`]).
+    /// Orientation sign of `det M`: negative for faces that are counter-clockwise in NDC (the
+    /// viewport flips y).
     sign: f64,
     /// Vertex indices.
     pub face: [u32; 3],
@@ -227,16 +204,28 @@ pub(crate) struct Setup {
 
 impl Setup {
     /// Builds the setup of `face` (screen vertices `v`) for pixels `col <= cmax`, `row <= rmax`.
-    /// `None` for an exactly degenerate face (`det M == 0`), one whose edge functions overflow,
-    /// or one whose `f64` determinant is too inaccurate to normalise with.
+    /// `None` for a back-facing face when `cull_back` (clockwise in NDC: `det M > 0` in the
+    /// y-down screen frame), an exactly degenerate face (`det M == 0`), one whose edge
+    /// functions overflow, or one whose `f64` determinant is too inaccurate to normalise with.
     #[inline]
-    pub fn new(v: &[[f64; 4]; 3], face: [u32; 3], cmax: f64, rmax: f64) -> Option<Setup> {
+    pub fn new(
+        v: &[[f64; 4]; 3],
+        face: [u32; 3],
+        cmax: f64,
+        rmax: f64,
+        cull_back: bool,
+    ) -> Option<Setup> {
         let (e0, p0) = edge_coeffs(v, &face, 1, 2);
-        let (e1, p1) = edge_coeffs(v, &face, 2, 0);
-        let (e2, p2) = edge_coeffs(v, &face, 0, 1);
         // det M = (v1 x v2) . v0, with its own error filter and exact fallback.
         let det = e0[0] * v[0][0] + e0[1] * v[0][1] + e0[2] * v[0][2];
         let perm = p0[0] * v[0][0].abs() + p0[1] * v[0][1].abs() + p0[2] * v[0][2].abs();
+        let tol = ERR * perm + ERR_ABS;
+        if cull_back && det > tol {
+            // Certainly back-facing: culled before the rest of the setup.
+            return None;
+        }
+        let (e1, p1) = edge_coeffs(v, &face, 2, 0);
+        let (e2, p2) = edge_coeffs(v, &face, 0, 1);
         // e = fl(fl(a col) + fl(fl(b row) + c)) with a, b, c each within 2u of their
         // permanents: |error| <= ~5u (pa col + pb row + pc) <= ERR * (...).
         let bound = |p: &[f64; 3]| ERR * (p[0] * cmax + p[1] * rmax + p[2]) + ERR_ABS;
@@ -244,7 +233,6 @@ impl Setup {
         if !(perm.is_finite() && (bnd[0] + bnd[1] + bnd[2]).is_finite()) {
             return None;
         }
-        let tol = ERR * perm + ERR_ABS;
         let sign = if det > tol {
             1.0
         } else if det < -tol {
@@ -255,6 +243,9 @@ impl Setup {
                 s => s as f64,
             }
         };
+        if cull_back && sign > 0.0 {
+            return None;
+        }
         let det = det * sign;
         if !(det > 0.0) {
             // Exactly nonzero but below the f64 rounding of its own terms: a sliver with no
@@ -271,6 +262,19 @@ impl Setup {
             face,
             w: [v[0][2], v[1][2], v[2][2]],
         })
+    }
+
+    /// The NDC depth plane `(dza, dzb, dzc)`: `z/w = dza col + dzb row + dzc`, affine in
+    /// screen space (`sum_i e_i z_i / sum_i e_i w_i` with `sum_i e_i w_i = det`). `v` are the
+    /// face's screen vertices, `z` in slot 3.
+    #[inline]
+    pub fn depth_plane(&self, v: &[[f64; 4]; 3]) -> [f64; 3] {
+        let z = [v[0][3], v[1][3], v[2][3]];
+        [
+            (self.a[0] * z[0] + self.a[1] * z[1] + self.a[2] * z[2]) * self.inv_det,
+            (self.b[0] * z[0] + self.b[1] * z[1] + self.b[2] * z[2]) * self.inv_det,
+            (self.c[0] * z[0] + self.c[1] * z[1] + self.c[2] * z[2]) * self.inv_det,
+        ]
     }
 
     /// Output values `(bary, view_depth, dbary_dx, dbary_dy)` of the fragment at pixel
@@ -304,19 +308,20 @@ impl Setup {
                 dy[i] = self.b[i] * s;
             }
         }
-        let t = (
-            bary.map(T::from_f64c),
-            T::from_f64c(vd),
-            dx.map(T::from_f64c),
-            dy.map(T::from_f64c),
-        );
-        // A sum is finite only if every term is (and rarely overflows when they are).
-        let mut sum = t.1;
+        // Every value within T's finite range (false for NaN) converts to a finite value; the
+        // saturating path gives the same values wherever the plain conversion is finite.
+        let m = T::max_value().to_f64c();
+        let mut ok = vd.abs() <= m;
         for i in 0..3 {
-            sum = sum + t.0[i] + t.2[i] + t.3[i];
+            ok &= (bary[i].abs() <= m) & (dx[i].abs() <= m) & (dy[i].abs() <= m);
         }
-        if sum.is_finite() {
-            t
+        if ok {
+            (
+                bary.map(T::from_f64c),
+                T::from_f64c(vd),
+                dx.map(T::from_f64c),
+                dy.map(T::from_f64c),
+            )
         } else {
             (bary.map(sat), sat(vd), dx.map(sat), dy.map(sat))
         }

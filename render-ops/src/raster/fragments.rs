@@ -7,7 +7,6 @@ use rayon::prelude::*;
 
 use super::bin::Bins;
 use super::clip::Rect;
-use super::edge::Setup;
 use super::{RasterError, RasterSettings, TILE_SIZE};
 
 /// Fragments of a rasterized image, packed: only covered pixels hold fragments.
@@ -199,45 +198,35 @@ impl<T: Real> Fragments<T> {
 }
 
 /// The fragments of one tile, packed in tile-local row-major pixel order (nearest first within a
-/// pixel), with their values computed by the tile pass while the faces' setups are in cache;
-/// assembly copies them, row segment by row segment, into the final arrays.
-pub(crate) struct TileOut<T> {
-    pub face: Vec<u32>,
-    pub bary: Vec<[T; 3]>,
-    pub depth: Vec<T>,
-    pub view_depth: Vec<T>,
-    pub dx: Vec<[T; 3]>,
-    pub dy: Vec<[T; 3]>,
+/// pixel): each fragment's face record id ([`Bins::rec`]) and NDC depth.
+pub(crate) struct TileFrags {
+    pub idx: Vec<u32>,
+    pub depth: Vec<f64>,
     /// Fragment count per local pixel (`local_row * TILE_SIZE + local_col`); empty if none.
     pub counts: Vec<u16>,
-    /// Number of fragments in each local row.
-    pub row_len: [u32; TILE_SIZE],
+    /// `row_start[lr]..row_start[lr + 1]`: the fragments of local row `lr`.
+    pub row_start: [u32; TILE_SIZE + 1],
 }
 
-impl<T: Real> TileOut<T> {
+impl TileFrags {
     pub fn empty() -> Self {
         Self {
-            face: Vec::new(),
-            bary: Vec::new(),
+            idx: Vec::new(),
             depth: Vec::new(),
-            view_depth: Vec::new(),
-            dx: Vec::new(),
-            dy: Vec::new(),
             counts: Vec::new(),
-            row_len: [0; TILE_SIZE],
+            row_start: [0; TILE_SIZE + 1],
         }
     }
 
-    /// Packs a dense K-buffer (`k` slots per local pixel of indices into `setups`, `+inf` depth
-    /// when empty) and computes each fragment's values ([`Setup::values`]).
-    pub fn pack(
-        depth: &[f64],
-        idx: &[u32],
-        setups: &[(Setup, u32)],
-        rect: &Rect,
-        k: usize,
-        persp: bool,
-    ) -> Self {
+    /// Number of fragments in local row `lr`.
+    #[inline]
+    fn row_len(&self, lr: usize) -> usize {
+        (self.row_start[lr + 1] - self.row_start[lr]) as usize
+    }
+
+    /// Packs a dense K-buffer (`k` slots per local pixel of record ids, `+inf` depth when
+    /// empty) of the tile `rect`.
+    pub fn pack(depth: &[f64], idx: &[u32], rect: &Rect, k: usize) -> Self {
         let n = (rect.c1 - rect.c0) as usize + 1;
         let rows = (rect.r1 - rect.r0) as usize + 1;
         let mut out = Self::empty();
@@ -250,165 +239,200 @@ impl<T: Real> TileOut<T> {
         if total == 0 {
             return out;
         }
-        out.face.reserve_exact(total);
-        out.bary.reserve_exact(total);
+        out.idx.reserve_exact(total);
         out.depth.reserve_exact(total);
-        out.view_depth.reserve_exact(total);
-        out.dx.reserve_exact(total);
-        out.dy.reserve_exact(total);
         out.counts = vec![0; TILE_SIZE * TILE_SIZE];
         for lr in 0..rows {
             let p = lr * TILE_SIZE;
             let slots = p * k..(p + n) * k;
-            let before = out.face.len();
-            let rf = (rect.r0 as usize + lr) as f64;
-            for (j, ((cnt, dk), ik)) in out.counts[p..p + n]
+            for ((cnt, dk), ik) in out.counts[p..p + n]
                 .iter_mut()
                 .zip(depth[slots.clone()].chunks_exact(k))
                 .zip(idx[slots].chunks_exact(k))
-                .enumerate()
             {
-                let col = (rect.c0 as usize + j) as f64;
                 for (&d, &i) in dk.iter().zip(ik) {
                     if d > 1.0 {
                         break;
                     }
-                    let (st, face) = &setups[i as usize];
-                    let (bary, vd, dx, dy) = st.values::<T>(col, rf, persp);
-                    out.face.push(*face);
-                    out.bary.push(bary);
-                    out.depth.push(T::from_f64c(d));
-                    out.view_depth.push(vd);
-                    out.dx.push(dx);
-                    out.dy.push(dy);
+                    out.idx.push(i);
+                    out.depth.push(d);
                     *cnt += 1;
                 }
             }
-            out.row_len[lr] = (out.face.len() - before) as u32;
+            out.row_start[lr + 1] = out.idx.len() as u32;
+        }
+        for lr in rows..TILE_SIZE {
+            out.row_start[lr + 1] = out.row_start[rows];
         }
         out
     }
 }
 
-/// Mutable output slices of one image row.
-struct RowOut<'a, T> {
-    row: usize,
-    base: usize,
-    offsets: &'a mut [u32],
-    face: &'a mut [u32],
-    bary: &'a mut [[T; 3]],
-    depth: &'a mut [T],
-    view_depth: &'a mut [T],
-    dx: &'a mut [[T; 3]],
-    dy: &'a mut [[T; 3]],
+/// Raw pointers to the (uninitialised) output arrays, shared by the tiles of the assembly,
+/// which write disjoint elements.
+struct OutPtrs<T> {
+    offsets: *mut u32,
+    face: *mut u32,
+    bary: *mut [T; 3],
+    depth: *mut T,
+    view_depth: *mut T,
+    dx: *mut [T; 3],
+    dy: *mut [T; 3],
 }
 
-fn split_sizes<'a, X>(mut v: &'a mut [X], sizes: &[usize]) -> Vec<&'a mut [X]> {
-    let mut out = Vec::with_capacity(sizes.len());
-    for &n in sizes {
-        let (a, b) = v.split_at_mut(n);
-        out.push(a);
-        v = b;
+impl<T> OutPtrs<T> {
+    /// Writes the offset of pixel `p`.
+    ///
+    /// # Safety
+    /// `p <= width * height`, and no other task writes or reads it.
+    #[inline(always)]
+    unsafe fn offset(&self, p: usize, v: u32) {
+        unsafe { self.offsets.add(p).write(v) }
     }
-    out
+
+    /// Writes fragment slot `i`.
+    ///
+    /// # Safety
+    /// `i < total`, and no other task writes or reads it.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn fragment(
+        &self,
+        i: usize,
+        face: u32,
+        bary: [T; 3],
+        depth: T,
+        view_depth: T,
+        dx: [T; 3],
+        dy: [T; 3],
+    ) {
+        unsafe {
+            self.face.add(i).write(face);
+            self.bary.add(i).write(bary);
+            self.depth.add(i).write(depth);
+            self.view_depth.add(i).write(view_depth);
+            self.dx.add(i).write(dx);
+            self.dy.add(i).write(dy);
+        }
+    }
 }
 
-/// Assembles the tiles' fragments into the packed pixel-order layout, in parallel over image
-/// rows (each a contiguous run of pixels and fragments). The result does
-/// not depend on the thread count.
+// SAFETY: the pointers are only used to write elements that no other task reads or writes
+// (see `assemble`), and `T` is `Send`.
+unsafe impl<T: Send> Sync for OutPtrs<T> {}
+unsafe impl<T: Send> Send for OutPtrs<T> {}
+
+/// Assembles the tiles' fragments into the packed pixel-order layout: computes where each
+/// tile's local rows start in the output (prefix sums over image rows and, within a row,
+/// over tiles), then computes every fragment's values ([`super::edge::Setup::values`])
+/// straight into the final arrays (allocated uninitialised, each element written once), in
+/// parallel over tiles, whose face records are then a small working set. The result does not
+/// depend on the thread count.
 pub(crate) fn assemble<T: Real>(
-    tiles: Vec<TileOut<T>>,
+    tiles: Vec<TileFrags>,
     bins: &Bins,
     s: &RasterSettings,
 ) -> Result<Fragments<T>, RasterError> {
     let (width, height, k) = (s.width, s.height, s.faces_per_pixel);
+    let persp = s.perspective_correct;
     let tx_n = bins.tiles_x;
-    let row_frags: Vec<usize> = (0..height)
-        .map(|r| {
-            let (ty, lr) = (r / TILE_SIZE, r % TILE_SIZE);
-            tiles[ty * tx_n..(ty + 1) * tx_n]
-                .iter()
-                .map(|t| t.row_len[lr] as usize)
-                .sum::<usize>()
-        })
-        .collect();
-    let total: usize = row_frags.iter().sum();
+    // Output position of each tile's local rows, in row-major pixel order.
+    let mut tile_pos = vec![[0usize; TILE_SIZE]; tiles.len()];
+    let mut total = 0usize;
+    for r in 0..height {
+        let (ty, lr) = (r / TILE_SIZE, r % TILE_SIZE);
+        for tx in 0..tx_n {
+            let t = ty * tx_n + tx;
+            tile_pos[t][lr] = total;
+            total += tiles[t].row_len(lr);
+        }
+    }
     if total > u32::MAX as usize {
         return Err(RasterError::TooManyFragments { fragments: total });
     }
-    let zero3 = [T::zero(); 3];
-    let mut out = Fragments {
+    let mut offsets = Vec::<u32>::with_capacity(width * height + 1);
+    let mut face = Vec::<u32>::with_capacity(total);
+    let mut bary = Vec::<[T; 3]>::with_capacity(total);
+    let mut depth = Vec::<T>::with_capacity(total);
+    let mut view_depth = Vec::<T>::with_capacity(total);
+    let mut dbary_dx = Vec::<[T; 3]>::with_capacity(total);
+    let mut dbary_dy = Vec::<[T; 3]>::with_capacity(total);
+    let out = OutPtrs {
+        offsets: offsets.as_mut_ptr(),
+        face: face.as_mut_ptr(),
+        bary: bary.as_mut_ptr(),
+        depth: depth.as_mut_ptr(),
+        view_depth: view_depth.as_mut_ptr(),
+        dx: dbary_dx.as_mut_ptr(),
+        dy: dbary_dy.as_mut_ptr(),
+    };
+    let out = &out;
+    let written: usize = (0..tiles.len())
+        .into_par_iter()
+        .map(|t| {
+            let tile = &tiles[t];
+            let rect = bins.tile_rect(t, width, height);
+            let n = (rect.c1 - rect.c0) as usize + 1;
+            let mut i = 0usize;
+            for lr in 0..(rect.r1 - rect.r0) as usize + 1 {
+                let row = rect.r0 as usize + lr;
+                let rf = row as f64;
+                let mut pos = tile_pos[t][lr];
+                let first_px = row * width + rect.c0 as usize;
+                if tile.row_len(lr) == 0 {
+                    for j in 0..n {
+                        // SAFETY: pixel `first_px + j` lies in this tile only, and is below
+                        // `width * height`, within the capacity of `offsets`.
+                        unsafe { out.offset(first_px + j, pos as u32) };
+                    }
+                    continue;
+                }
+                let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + n];
+                for (j, &cnt) in counts.iter().enumerate() {
+                    // SAFETY: as above.
+                    unsafe { out.offset(first_px + j, pos as u32) };
+                    let col = (rect.c0 as usize + j) as f64;
+                    for _ in 0..cnt {
+                        let rec = bins.rec(tile.idx[i]);
+                        let (b, vd, dx, dy) = rec.st.values::<T>(col, rf, persp);
+                        // SAFETY: `pos` runs over `tile_pos[t][lr]..` for this tile's
+                        // `row_len(lr)` fragments of the row: a range of `..total` that no
+                        // other tile or row has (prefix sums above), within the capacity.
+                        let d = T::from_f64c(tile.depth[i]);
+                        unsafe { out.fragment(pos, rec.face, b, d, vd, dx, dy) };
+                        pos += 1;
+                        i += 1;
+                    }
+                }
+            }
+            i
+        })
+        .sum();
+    // Every tile wrote all its fragments (checked before the lengths are set).
+    assert_eq!(written, total, "fragments written");
+    // SAFETY: every pixel's offset (`width * height` of them, each in exactly one tile) and
+    // every fragment slot `..total` (the tiles' fragments, `written == total`) was written
+    // above; the last offset is written here.
+    unsafe {
+        offsets.as_mut_ptr().add(width * height).write(total as u32);
+        offsets.set_len(width * height + 1);
+        face.set_len(total);
+        bary.set_len(total);
+        depth.set_len(total);
+        view_depth.set_len(total);
+        dbary_dx.set_len(total);
+        dbary_dy.set_len(total);
+    }
+    Ok(Fragments {
         width,
         height,
         k,
-        offsets: vec![0u32; width * height + 1],
-        face: vec![0u32; total],
-        bary: vec![zero3; total],
-        depth: vec![T::zero(); total],
-        view_depth: vec![T::zero(); total],
-        dbary_dx: vec![zero3; total],
-        dbary_dy: vec![zero3; total],
-    };
-    out.offsets[width * height] = total as u32;
-    let mut bases = Vec::with_capacity(height);
-    let mut acc = 0usize;
-    for &n in &row_frags {
-        bases.push(acc);
-        acc += n;
-    }
-    let row_px = vec![width; height];
-    let rows: Vec<RowOut<'_, T>> = split_sizes(&mut out.offsets[..width * height], &row_px)
-        .into_iter()
-        .zip(split_sizes(&mut out.face, &row_frags))
-        .zip(split_sizes(&mut out.bary, &row_frags))
-        .zip(split_sizes(&mut out.depth, &row_frags))
-        .zip(split_sizes(&mut out.view_depth, &row_frags))
-        .zip(split_sizes(&mut out.dbary_dx, &row_frags))
-        .zip(split_sizes(&mut out.dbary_dy, &row_frags))
-        .enumerate()
-        .map(
-            |(row, ((((((offsets, face), bary), depth), view_depth), dx), dy))| RowOut {
-                row,
-                base: bases[row],
-                offsets,
-                face,
-                bary,
-                depth,
-                view_depth,
-                dx,
-                dy,
-            },
-        )
-        .collect();
-    rows.into_par_iter().with_min_len(4).for_each(|ro| {
-        let (ty, lr) = (ro.row / TILE_SIZE, ro.row % TILE_SIZE);
-        let mut pos = 0usize;
-        for (tx, tile) in tiles[ty * tx_n..(ty + 1) * tx_n].iter().enumerate() {
-            let c0 = tx * TILE_SIZE;
-            let c1 = (c0 + TILE_SIZE).min(width);
-            let offs = &mut ro.offsets[c0..c1];
-            if tile.row_len[lr] == 0 {
-                offs.fill((ro.base + pos) as u32);
-                continue;
-            }
-            let i0 = tile.row_len[..lr]
-                .iter()
-                .map(|&n| n as usize)
-                .sum::<usize>();
-            let n_row = tile.row_len[lr] as usize;
-            let (src, dst) = (i0..i0 + n_row, pos..pos + n_row);
-            ro.face[dst.clone()].copy_from_slice(&tile.face[src.clone()]);
-            ro.bary[dst.clone()].copy_from_slice(&tile.bary[src.clone()]);
-            ro.depth[dst.clone()].copy_from_slice(&tile.depth[src.clone()]);
-            ro.view_depth[dst.clone()].copy_from_slice(&tile.view_depth[src.clone()]);
-            ro.dx[dst.clone()].copy_from_slice(&tile.dx[src.clone()]);
-            ro.dy[dst].copy_from_slice(&tile.dy[src]);
-            let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + (c1 - c0)];
-            for (o, &n) in offs.iter_mut().zip(counts) {
-                *o = (ro.base + pos) as u32;
-                pos += n as usize;
-            }
-        }
-    });
-    Ok(out)
+        offsets,
+        face,
+        bary,
+        depth,
+        view_depth,
+        dbary_dx,
+        dbary_dy,
+    })
 }

@@ -7,17 +7,16 @@ use rayon::prelude::*;
 use super::bin::{bin_faces, Bins};
 use super::clip::{ceil_u, floor_u, to_screen, Rect};
 use super::edge::Setup;
-use super::fragments::{assemble, Fragments, TileOut};
+use super::fragments::{assemble, Fragments, TileFrags};
 use super::{validate_inputs, RasterError, RasterSettings, TILE_SIZE};
+use crate::scatter::scatter_by_vertex;
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
 /// (`local_row * TILE_SIZE + local_col`) of NDC depth (`+inf` when empty) and index into the
-/// tile's setups, nearest first; and the setups (with face index) of the tile's faces that
-/// own fragments.
+/// tile's setups, nearest first.
 struct Scratch {
     depth: Vec<f64>,
     idx: Vec<u32>,
-    setups: Vec<(Setup, u32)>,
 }
 
 impl Scratch {
@@ -26,7 +25,6 @@ impl Scratch {
         Self {
             depth: vec![f64::INFINITY; n],
             idx: vec![0; n],
-            setups: Vec::new(),
         }
     }
 }
@@ -34,7 +32,6 @@ impl Scratch {
 /// Read-only inputs of the tile pass.
 struct Ctx<'a> {
     verts: &'a [[f64; 4]],
-    faces: &'a [[u32; 3]],
     bins: &'a Bins,
     s: &'a RasterSettings,
 }
@@ -74,11 +71,10 @@ pub fn rasterize<T: Real>(
     let bins = bin_faces(&verts, &proj, &outcodes, faces, s);
     let ctx = Ctx {
         verts: &verts,
-        faces,
         bins: &bins,
         s,
     };
-    let tiles: Vec<TileOut<T>> = (0..bins.num_tiles())
+    let tiles: Vec<TileFrags> = (0..bins.num_tiles())
         .into_par_iter()
         .map_init(
             || Scratch::new(s.faces_per_pixel),
@@ -89,64 +85,42 @@ pub fn rasterize<T: Real>(
 }
 
 /// Z-buffers the faces binned to tile `t` and packs the surviving fragments.
-fn raster_tile<T: Real>(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileOut<T> {
+fn raster_tile(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileFrags {
     let (s, verts) = (ctx.s, ctx.verts);
     let k = s.faces_per_pixel;
     let rect = ctx.bins.tile_rect(t, s.width, s.height);
     let mut faces = ctx.bins.tile_faces(t).peekable();
     if faces.peek().is_none() {
-        return TileOut::empty();
+        return TileFrags::empty();
     }
     sc.depth.fill(f64::INFINITY);
-    let mut setups = std::mem::take(&mut sc.setups);
-    setups.clear();
-    for f in faces {
-        let r = ctx.bins.rects[f as usize].intersect(&rect);
+    for id in faces {
+        let rec = ctx.bins.rec(id);
+        let r = rec.rect.intersect(&rect);
         if r.is_empty() {
             continue;
         }
-        let face = ctx.faces[f as usize];
-        let v = [
-            verts[face[0] as usize],
-            verts[face[1] as usize],
-            verts[face[2] as usize],
-        ];
-        let Some(st) = Setup::new(&v, face, r.c1 as f64, r.r1 as f64) else {
-            continue;
-        };
-        if z_test_face(&st, &v, &r, &rect, verts, sc, setups.len() as u32, k) {
-            setups.push((st, f));
-        }
+        z_test_face(&rec.st, &rec.dz, &r, &rect, verts, sc, id, k);
     }
-    let out = TileOut::pack(&sc.depth, &sc.idx, &setups, &rect, k, s.perspective_correct);
-    sc.setups = setups;
-    out
+    TileFrags::pack(&sc.depth, &sc.idx, &rect, k)
 }
 
-/// Tests the pixels of `r` (inside tile `rect`) against one face and inserts its fragments into
-/// the K-buffer under local face number `li`. Returns whether any was inserted.
+/// Tests the pixels of `r` (inside tile `rect`) against one face (setup `st`, NDC depth plane
+/// `dz`, [`Setup::depth_plane`]) and inserts its fragments into the K-buffer under record id
+/// `li`.
 #[inline]
 #[allow(clippy::too_many_arguments)]
 fn z_test_face(
     st: &Setup,
-    v: &[[f64; 4]; 3],
+    dz: &[f64; 3],
     r: &Rect,
     rect: &Rect,
     verts: &[[f64; 4]],
     sc: &mut Scratch,
     li: u32,
     k: usize,
-) -> bool {
-    // NDC depth z/w is affine in screen space: sum_i e_i z_i / sum_i e_i w_i with
-    // sum_i e_i w_i = det, i.e. the plane d = dza col + dzb row + dzc. The near and far planes
-    // are the per-fragment test -1 <= d <= 1.
-    let z = [v[0][3], v[1][3], v[2][3]];
-    let dz = [
-        (st.a[0] * z[0] + st.a[1] * z[1] + st.a[2] * z[2]) * st.inv_det,
-        (st.b[0] * z[0] + st.b[1] * z[1] + st.b[2] * z[2]) * st.inv_det,
-        (st.c[0] * z[0] + st.c[1] * z[1] + st.c[2] * z[2]) * st.inv_det,
-    ];
-    let mut used = false;
+) {
+    // The near and far planes are the per-fragment test -1 <= d <= 1 on the depth plane.
     let (w, h) = (r.c1 - r.c0 + 1, r.r1 - r.r0 + 1);
     if w * h <= 4 {
         // Tiny boxes: test every pixel, cheaper than setting up row spans.
@@ -157,10 +131,10 @@ fn z_test_face(
             let first = (row - rect.r0) as usize * TILE_SIZE + (r.c0 - rect.c0) as usize;
             for (j, col) in (r.c0..r.c1 + 1).enumerate() {
                 let p = (first + j) * k;
-                used |= test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p);
+                test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p);
             }
         }
-        return used;
+        return;
     }
     // Row spans. A covered pixel has a_i col + b_i row + c_i >= -bnd_i in real arithmetic on the
     // computed coefficients (the bound covers their rounding), i.e. col >= al_i + be_i row for
@@ -197,11 +171,11 @@ fn z_test_face(
                 r1 = if q + m < r1 { q + m } else { r1 };
             }
         } else if num > 0.0 {
-            return false;
+            return;
         }
     }
     if !(r0 <= r1) {
-        return false;
+        return;
     }
     let (c0, c1) = (r.c0 as f64, r.c1 as f64);
     for row in ceil_u(r0)..floor_u(r1) + 1 {
@@ -227,10 +201,9 @@ fn z_test_face(
         let first = (row - rect.r0) as usize * TILE_SIZE + (cl - rect.c0) as usize;
         for (j, col) in (cl..cr + 1).enumerate() {
             let p = (first + j) * k;
-            used |= test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p);
+            test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p);
         }
     }
-    used
 }
 
 /// Coverage, depth and K-buffer insertion of one pixel (K-buffer slots `p..p + k`).
@@ -248,17 +221,17 @@ fn test_pixel(
     col: f64,
     rf: f64,
     p: usize,
-) -> bool {
+) {
     let bnd = &st.bnd;
     let e = st.eval(col, tr);
     // Outside the band |e_i| <= bnd_i the f64 sign is the exact sign.
     let certain_in = (e[0] > bnd[0]) & (e[1] > bnd[1]) & (e[2] > bnd[2]);
     if !certain_in {
         if (e[0] < -bnd[0]) | (e[1] < -bnd[1]) | (e[2] < -bnd[2]) {
-            return false;
+            return;
         }
         if !st.covered_exact(verts, &e, col, rf) {
-            return false;
+            return;
         }
     }
     let d = dza * col + dr;
@@ -266,7 +239,7 @@ fn test_pixel(
     // covered pixels; its f64 value fails only for slivers at the precision limit, whose
     // barycentrics could not be normalised.
     if !((-1.0..=1.0).contains(&d) && d < sc.depth[p + k - 1] && e[0] + e[1] + e[2] > 0.0) {
-        return false;
+        return;
     }
     // Insertion keeping earlier (lower-index) faces first among equal depths.
     let mut i = p + k - 1;
@@ -277,7 +250,6 @@ fn test_pixel(
     }
     sc.depth[i] = d;
     sc.idx[i] = li;
-    true
 }
 
 /// Vector-Jacobian product of [`rasterize`] with the visibility (which face each fragment
@@ -346,6 +318,7 @@ pub fn rasterize_backward<T: Real>(
     let mut acc = vec![[0.0f64; 4]; clip.len()];
     let mut contrib = vec![[[0.0f64; 4]; 3]; BLOCK.min(n)];
     let (wf, hf) = (s.width as f64, s.height as f64);
+    let depth_grads = grad_depth.is_some() || grad_view_depth.is_some();
     let mut start = 0;
     while start < n {
         let end = (start + BLOCK).min(n);
@@ -374,22 +347,33 @@ pub fn rasterize_backward<T: Real>(
                         &cur.insert((fi, FaceVjp::new(&v))).1
                     }
                 };
-                let gd = grad_depth.map_or(0.0, |g| g[i].to_f64c());
-                let gw = grad_view_depth.map_or(0.0, |g| g[i].to_f64c());
                 let gb = grad_bary[i].map(|x| x.to_f64c());
-                *out = fv.vjp(px, gb, gd, gw, s.perspective_correct);
+                *out = if depth_grads {
+                    let gd = grad_depth.map_or(0.0, |g| g[i].to_f64c());
+                    let gw = grad_view_depth.map_or(0.0, |g| g[i].to_f64c());
+                    fv.vjp::<true>(px, gb, gd, gw, s.perspective_correct)
+                } else {
+                    fv.vjp::<false>(px, gb, 0.0, 0.0, s.perspective_correct)
+                };
             }
         });
-        // Fixed-order reduction.
-        for (j, g) in buf.iter().enumerate() {
-            let f = faces[frags.face[start + j] as usize];
-            for m in 0..3 {
-                let a = &mut acc[f[m] as usize];
-                for q in 0..4 {
-                    a[q] += g[m][q];
+        // Fixed-order reduction: every vertex sums its contributions in fragment order
+        // (parallel over vertex blocks, `scatter_by_vertex`).
+        let buf: &[[[f64; 4]; 3]] = buf;
+        scatter_by_vertex(&mut acc, 1, |vr, out| {
+            for (j, g) in buf.iter().enumerate() {
+                let f = faces[frags.face[start + j] as usize];
+                for m in 0..3 {
+                    let v = f[m] as usize;
+                    if vr.contains(&v) {
+                        let a = &mut out[v - vr.start];
+                        for q in 0..4 {
+                            a[q] += g[m][q];
+                        }
+                    }
                 }
             }
-        }
+        });
         start = end;
     }
     Ok(acc.into_iter().map(|a| a.map(T::from_f64c)).collect())
@@ -437,15 +421,24 @@ impl FaceVjp {
     /// depth gradient into `g_b += g_D z / W`, `g_W -= g_D D / W`), and `dL/dz_m = g_D b_m / W`.
     /// For screen-space barycentrics `l_i = u_i w_i`: `dL/dv_m -= u_m M^-T (g_l * w)`,
     /// `dL/dw_m += g_l,m u_m`.
-    fn vjp(&self, px: [f64; 2], gb: [f64; 3], gd: f64, gw: f64, persp: bool) -> [[f64; 4]; 3] {
-        fragment_vjp(&self.v, &self.c, self.det, px, gb, gd, gw, persp)
+    /// `DEPTH == false` requires `gd == gw == 0` and skips their terms (the result is the
+    /// same up to the sign of zeros, which the accumulation does not see).
+    fn vjp<const DEPTH: bool>(
+        &self,
+        px: [f64; 2],
+        gb: [f64; 3],
+        gd: f64,
+        gw: f64,
+        persp: bool,
+    ) -> [[f64; 4]; 3] {
+        fragment_vjp::<DEPTH>(&self.v, &self.c, self.det, px, gb, gd, gw, persp)
     }
 }
 
 /// The body of [`FaceVjp::vjp`].
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn fragment_vjp(
+fn fragment_vjp<const DEPTH: bool>(
     v: &[[f64; 4]; 3],
     c: &[[f64; 3]; 3],
     det: f64,
@@ -461,30 +454,39 @@ fn fragment_vjp(
     }
     let p = [px[0], px[1], 1.0];
     let u = [dot(c[0], p) / det, dot(c[1], p) / det, dot(c[2], p) / det];
-    let w_frag = 1.0 / (u[0] + u[1] + u[2]);
-    let b = u.map(|x| x * w_frag);
-    let z = [v[0][2], v[1][2], v[2][2]];
     let w = [v[0][3], v[1][3], v[2][3]];
-    let d = dot(b, z) / w_frag;
-    let mut g = if persp { gb } else { [0.0; 3] };
-    for i in 0..3 {
-        g[i] += gd * z[i] / w_frag;
-    }
-    let g_w = gw - gd * d / w_frag;
-    let s = dot(g, b) + g_w * w_frag;
-    let kk = [s - g[0], s - g[1], s - g[2]];
-    let mut q = [0.0; 3];
-    for i in 0..3 {
-        for a in 0..3 {
-            q[a] += kk[i] * c[i][a];
+    // Screen-space barycentrics without depth gradients have no perspective-correct part
+    // (its g is zero, so it adds only zeros).
+    if persp || DEPTH {
+        let w_frag = 1.0 / (u[0] + u[1] + u[2]);
+        let b = u.map(|x| x * w_frag);
+        let z = [v[0][2], v[1][2], v[2][2]];
+        let mut g = if persp { gb } else { [0.0; 3] };
+        let mut g_w = 0.0;
+        if DEPTH {
+            let d = dot(b, z) / w_frag;
+            for i in 0..3 {
+                g[i] += gd * z[i] / w_frag;
+            }
+            g_w = gw - gd * d / w_frag;
         }
-    }
-    let q = q.map(|x| x / det);
-    for m in 0..3 {
-        out[m][0] = b[m] * q[0];
-        out[m][1] = b[m] * q[1];
-        out[m][3] = b[m] * q[2];
-        out[m][2] = gd * b[m] / w_frag;
+        let s = dot(g, b) + g_w * w_frag;
+        let kk = [s - g[0], s - g[1], s - g[2]];
+        let mut q = [0.0; 3];
+        for i in 0..3 {
+            for a in 0..3 {
+                q[a] += kk[i] * c[i][a];
+            }
+        }
+        let q = q.map(|x| x / det);
+        for m in 0..3 {
+            out[m][0] = b[m] * q[0];
+            out[m][1] = b[m] * q[1];
+            out[m][3] = b[m] * q[2];
+            if DEPTH {
+                out[m][2] = gd * b[m] / w_frag;
+            }
+        }
     }
     if !persp {
         let gl = [gb[0] * w[0], gb[1] * w[1], gb[2] * w[2]];

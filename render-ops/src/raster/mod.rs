@@ -27,15 +27,20 @@
 //!   adjacent faces nor missed between them. Zero-area triangles (exactly `det M == 0`) produce no
 //!   fragments.
 //! * **Tiles.** Faces are binned by their (clipped) screen bounding boxes, rounded inwards to
-//!   the pixel centres they can contain, into `32 x 32` pixel tiles; tiles are rasterized in
+//!   the pixel centres they can contain, into `32 x 32` pixel tiles; the binning pass also
+//!   culls and sets up each surviving face once (edge functions with error bounds valid over
+//!   its whole box, depth plane), stored in face order so that the tile pass reads them
+//!   contiguously instead of gathering vertices per tile. Tiles are rasterized in
 //!   parallel with rayon. Within a tile each face walks conservative per-row column spans (from
 //!   the edge functions and their error bounds) and only pixels in a span get the exact test, so
 //!   cost grows with covered pixels and faces. Each tile keeps the `K` nearest fragments per pixel
-//!   in a fixed-size per-thread K-buffer and packs them with their barycentrics, depths and
-//!   derivatives, computed right there while the tile's face setups are in cache; assembly
-//!   then copies each tile's row segments into the packed pixel-order output, in parallel over
-//!   image rows. Bins list faces in increasing index order and depth ties go to the lower face
-//!   index, so the result is bit-identical for any number of threads.
+//!   in a fixed-size per-thread K-buffer and packs their face records and depths; assembly then
+//!   finds where every tile row starts in the packed pixel-order output (prefix sums) and,
+//!   in parallel over tiles (whose face records are a small working set), computes each
+//!   fragment's barycentrics, depths and derivatives straight into the output arrays
+//!   (allocated uninitialised and written once). Bins list faces in increasing index order
+//!   and depth ties go to the lower face index, so the result is bit-identical for any number
+//!   of threads.
 //! * **Degenerate input.** Fragments whose `f64` `sum(e)` is not positive (slivers at the limit
 //!   of `f64` precision) are dropped; output values beyond the range of `T` are saturated, so
 //!   every fragment value is finite.

@@ -1,0 +1,38 @@
+//! Deterministic parallel scatter-add into per-vertex rows ("owner computes").
+//!
+//! The vertex range is split into one contiguous block per rayon thread; every block scans all
+//! contributions in their given order and adds only those of its own vertices. Each vertex
+//! therefore sums its contributions in input order, exactly as the serial loop does, so the
+//! result is bit-identical for any number of threads (one thread is the serial loop). The scan
+//! is repeated per block, which is cheap next to the scattered adds it parallelises.
+
+use std::ops::Range;
+
+use rayon::prelude::*;
+
+/// Fewest vertices per block: below this the split is not worth a task.
+const MIN_BLOCK: usize = 1024;
+
+/// Splits `acc` (`width` values per vertex) into per-thread vertex blocks and calls
+/// `visit(vertices, block)` on each in parallel: `visit` must scan all contributions in a
+/// fixed order and add those whose vertex `v` lies in `vertices` into
+/// `block[(v - vertices.start) * width..]`.
+pub(crate) fn scatter_by_vertex<A: Send>(
+    acc: &mut [A],
+    width: usize,
+    visit: impl Fn(Range<usize>, &mut [A]) + Sync,
+) {
+    let nv = acc.len().checked_div(width).unwrap_or(0);
+    let blocks = rayon::current_num_threads().min(nv / MIN_BLOCK).max(1);
+    if blocks == 1 {
+        visit(0..nv, acc);
+        return;
+    }
+    let per = nv.div_ceil(blocks);
+    acc.par_chunks_mut(per * width)
+        .enumerate()
+        .for_each(|(b, block)| {
+            let v0 = b * per;
+            visit(v0..v0 + block.len() / width, block)
+        });
+}
