@@ -31,7 +31,8 @@ mod avx2 {
         _mm_cvtss_f32(_mm_hadd_ps(h, h))
     }
 
-    /// `ys[r] = rows[r] . x`; two accumulators per row (even and odd vectors), then the tail.
+    /// `ys[r] = rows[r] . x`; four accumulators per row (vector `c` into `c % 4`, enough
+    /// independent FMA chains to cover the FMA latency), then the masked tail.
     ///
     /// # Safety
     /// The CPU has AVX2 and FMA; `rows.len() == ys.len() * x.len()`.
@@ -47,26 +48,35 @@ mod avx2 {
             let xt = _mm256_maskload_ps(xp.add(full * 8), m);
             for (r, y) in ys.iter_mut().enumerate() {
                 let p = rows.as_ptr().add(r * k);
-                let (mut a0, mut a1) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+                let mut a = [_mm256_setzero_ps(); 4];
                 let mut c = 0;
-                while c + 2 <= full {
-                    let o = 8 * c;
-                    a0 = _mm256_fmadd_ps(_mm256_loadu_ps(p.add(o)), _mm256_loadu_ps(xp.add(o)), a0);
-                    a1 = _mm256_fmadd_ps(
-                        _mm256_loadu_ps(p.add(o + 8)),
-                        _mm256_loadu_ps(xp.add(o + 8)),
-                        a1,
-                    );
-                    c += 2;
+                while c + 4 <= full {
+                    for (j, aj) in a.iter_mut().enumerate() {
+                        let o = 8 * (c + j);
+                        *aj = _mm256_fmadd_ps(
+                            _mm256_loadu_ps(p.add(o)),
+                            _mm256_loadu_ps(xp.add(o)),
+                            *aj,
+                        );
+                    }
+                    c += 4;
                 }
-                if c < full {
+                while c < full {
                     let o = 8 * c;
-                    a0 = _mm256_fmadd_ps(_mm256_loadu_ps(p.add(o)), _mm256_loadu_ps(xp.add(o)), a0);
+                    a[c % 4] = _mm256_fmadd_ps(
+                        _mm256_loadu_ps(p.add(o)),
+                        _mm256_loadu_ps(xp.add(o)),
+                        a[c % 4],
+                    );
+                    c += 1;
                 }
                 if t > 0 {
-                    a1 = _mm256_fmadd_ps(_mm256_maskload_ps(p.add(full * 8), m), xt, a1);
+                    a[3] = _mm256_fmadd_ps(_mm256_maskload_ps(p.add(full * 8), m), xt, a[3]);
                 }
-                *y = hsum(_mm256_add_ps(a0, a1));
+                *y = hsum(_mm256_add_ps(
+                    _mm256_add_ps(a[0], a[1]),
+                    _mm256_add_ps(a[2], a[3]),
+                ));
             }
         }
     }
