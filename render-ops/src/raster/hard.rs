@@ -435,6 +435,19 @@ impl FaceVjp {
     }
 }
 
+/// `(v^T C) / det` for the cofactor matrix `C` of a face's clip-space vertex matrix: the
+/// gradient of the edge-function coefficients from the gradient `v` of the corners' weights.
+#[inline(always)]
+fn vec_mat_over(v: &[f64; 3], c: &[[f64; 3]; 3], det: f64) -> [f64; 3] {
+    let mut q = [0.0; 3];
+    for i in 0..3 {
+        for a in 0..3 {
+            q[a] += v[i] * c[i][a];
+        }
+    }
+    q.map(|x| x / det)
+}
+
 /// The body of [`FaceVjp::vjp`].
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
@@ -471,14 +484,7 @@ fn fragment_vjp<const DEPTH: bool>(
             g_w = gw - gd * d / w_frag;
         }
         let s = dot(g, b) + g_w * w_frag;
-        let kk = [s - g[0], s - g[1], s - g[2]];
-        let mut q = [0.0; 3];
-        for i in 0..3 {
-            for a in 0..3 {
-                q[a] += kk[i] * c[i][a];
-            }
-        }
-        let q = q.map(|x| x / det);
+        let q = vec_mat_over(&[s - g[0], s - g[1], s - g[2]], c, det);
         for m in 0..3 {
             out[m][0] = b[m] * q[0];
             out[m][1] = b[m] * q[1];
@@ -489,14 +495,7 @@ fn fragment_vjp<const DEPTH: bool>(
         }
     }
     if !persp {
-        let gl = [gb[0] * w[0], gb[1] * w[1], gb[2] * w[2]];
-        let mut ql = [0.0; 3];
-        for i in 0..3 {
-            for a in 0..3 {
-                ql[a] += gl[i] * c[i][a];
-            }
-        }
-        let ql = ql.map(|x| x / det);
+        let ql = vec_mat_over(&[gb[0] * w[0], gb[1] * w[1], gb[2] * w[2]], c, det);
         for m in 0..3 {
             out[m][0] -= u[m] * ql[0];
             out[m][1] -= u[m] * ql[1];

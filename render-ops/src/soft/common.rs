@@ -154,6 +154,27 @@ impl TileBins {
         sp
     }
 
+    /// Runs `face(fi, out)` for every face with a non-empty box, in parallel and in
+    /// [`TileBins::spatial_order`] (the per-pixel data a face reads stays in cache), each face
+    /// writing `stride` values. Callers then sum [`PerFace::get`] into vertices in face order,
+    /// so the result does not depend on the thread count.
+    pub fn per_face<F>(&self, stride: usize, face: F) -> PerFace
+    where
+        F: Fn(usize, &mut [f64]) + Sync,
+    {
+        let order = self.spatial_order();
+        let mut vals = vec![0.0; order.len() * stride];
+        vals.par_chunks_mut(stride)
+            .zip(order.par_iter())
+            .with_min_len(16)
+            .for_each(|(acc, &fi)| face(fi as usize, acc));
+        let mut slot = vec![u32::MAX; self.rects.len()];
+        for (i, &fi) in order.iter().enumerate() {
+            slot[fi as usize] = i as u32;
+        }
+        PerFace { vals, slot, stride }
+    }
+
     /// Faces that have a box, in the order of the tile holding their box's first pixel
     /// (row-major tiles; face order within a tile), so that faces visited one after another
     /// touch nearby pixels.
@@ -360,6 +381,22 @@ pub(crate) struct Closest {
     pub edge: u8,
     pub t: f64,
     pub r: [f64; 2],
+}
+
+/// Per-face values of [`TileBins::per_face`], stored in spatial order.
+pub struct PerFace {
+    vals: Vec<f64>,
+    slot: Vec<u32>,
+    stride: usize,
+}
+
+impl PerFace {
+    /// Face `fi`'s values, `None` when its box was empty (it touched no pixel).
+    pub fn get(&self, fi: usize) -> Option<&[f64]> {
+        let i = self.slot[fi];
+        (i != u32::MAX)
+            .then(|| &self.vals[i as usize * self.stride..(i as usize + 1) * self.stride])
+    }
 }
 
 /// Closest point of the boundary of triangle `v` to `p` (first edge wins ties): the plain

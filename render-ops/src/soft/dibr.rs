@@ -560,26 +560,15 @@ impl<T: Real> Op<T> for DibrAlphaOp {
         let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
         // Per face: [dX, dY, dW] of each corner.
         const STRIDE: usize = 9;
-        // Faces in spatial order (the per-pixel data they read stays in cache), then summed
-        // into the vertices in face order.
-        let order = prep.bins.spatial_order();
-        let mut fgrad = vec![0.0; order.len() * STRIDE];
-        fgrad
-            .par_chunks_mut(STRIDE)
-            .zip(order.par_iter())
-            .with_min_len(16)
-            .for_each(|(acc, &fi)| self.face_gradient(prep, fi as usize, &go, acc));
-        let mut slot = vec![u32::MAX; self.faces.len()];
-        for (i, &fi) in order.iter().enumerate() {
-            slot[fi as usize] = i as u32;
-        }
+        let per_face = prep
+            .bins
+            .per_face(STRIDE, |fi, acc| self.face_gradient(prep, fi, &go, acc));
         let nv = prep.ndc.len();
         let mut gclip = vec![0.0; nv * 4];
-        for (f, &i) in self.faces.iter().zip(&slot) {
-            if i == u32::MAX {
+        for (fi, f) in self.faces.iter().enumerate() {
+            let Some(a) = per_face.get(fi) else {
                 continue;
-            }
-            let a = &fgrad[i as usize * STRIDE..(i as usize + 1) * STRIDE];
+            };
             for k in 0..3 {
                 let v = f[k] as usize;
                 gclip[v * 4] += a[k * 3];

@@ -607,27 +607,18 @@ impl<T: Real> Op<T> for SoftRasOp {
                 b[c + 3] = st[0];
             });
         let stride = 3 * (4 + c);
-        // Faces in spatial order (the per-pixel data they read stays in cache); per face:
-        // [dX, dY, dZ, dW, dattr...] of each corner, summed into the vertices in face order.
-        let order = prep.bins.spatial_order();
-        let mut fgrad = vec![0.0; order.len() * stride];
-        fgrad
-            .par_chunks_mut(stride)
-            .zip(order.par_iter())
-            .with_min_len(16)
-            .for_each(|(acc, &fi)| self.face_gradient(prep, fi as usize, &pb, acc));
-        let mut slot = vec![u32::MAX; self.faces.len()];
-        for (i, &fi) in order.iter().enumerate() {
-            slot[fi as usize] = i as u32;
-        }
+        // Per face: [dX, dY, dZ, dW, dattr...] of each corner, summed into the vertices in
+        // face order.
+        let per_face = prep
+            .bins
+            .per_face(stride, |fi, acc| self.face_gradient(prep, fi, &pb, acc));
         let nv = prep.ndc.len();
         let mut gclip = vec![0.0; nv * 4];
         let mut gattr = vec![0.0; nv * c];
-        for (f, &i) in self.faces.iter().zip(&slot) {
-            if i == u32::MAX {
+        for (fi, f) in self.faces.iter().enumerate() {
+            let Some(a) = per_face.get(fi) else {
                 continue;
-            }
-            let a = &fgrad[i as usize * stride..(i as usize + 1) * stride];
+            };
             for k in 0..3 {
                 let v = f[k] as usize;
                 let ak = &a[k * (4 + c)..(k + 1) * (4 + c)];
