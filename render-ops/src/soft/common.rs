@@ -384,7 +384,7 @@ pub(crate) struct Closest {
 }
 
 /// Per-face values of [`TileBins::per_face`], stored in spatial order.
-pub struct PerFace {
+pub(crate) struct PerFace {
     vals: Vec<f64>,
     slot: Vec<u32>,
     stride: usize,

@@ -10,6 +10,7 @@
 
 pub(crate) mod common;
 pub mod dibr;
+pub(crate) mod simd;
 pub mod softras;
 
 pub use common::MAX_SOFT_BIN_ENTRIES;

@@ -41,6 +41,8 @@ use super::common::{
 };
 use crate::error::RenderError;
 
+mod fast;
+
 /// Settings of [`softras`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct SoftSettings {
@@ -194,6 +196,10 @@ struct Prep {
     /// the blend's normaliser `Z = sum_f D_f e_f + e_b`, `P = prod_f (1 - D_f)`, then the C
     /// aggregated attributes `I`. Written by the forward.
     pix: Vec<f64>,
+    /// Whether the `f32` fast path ([`fast`]) evaluates this render.
+    fast: bool,
+    /// Column centres padded for 8-lane chunks (fast path only).
+    pxp: Vec<f64>,
 }
 
 /// Leading per-pixel values of [`Prep::pix`] before the attributes.
@@ -292,6 +298,8 @@ fn prepare<T: Real>(
         channels,
         bins,
         pix: Vec::new(),
+        fast: false,
+        pxp: Vec::new(),
     }
 }
 
@@ -517,6 +525,11 @@ impl<T: Real> Op<T> for SoftRasOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
         let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s);
         let (w, h, c) = (self.s.width, self.s.height, prep.channels);
+        prep.fast =
+            T::as_f32(&[]).is_some() && c <= fast::FAST_MAX_C && !self.s.perspective_correct;
+        if prep.fast {
+            prep.pxp = fast::padded_px(&prep.bins.px);
+        }
         let this = &*self;
         let bg: Vec<f64> = (0..c)
             .map(|ch| this.s.background.get(ch).copied().unwrap_or(0.0))
@@ -528,20 +541,37 @@ impl<T: Real> Op<T> for SoftRasOp {
         let tiles: Vec<Vec<f64>> = {
             let prep = &prep;
             let bins = &prep.bins;
-            (0..bins.tiles.len())
-                .into_par_iter()
-                .map_init(
-                    || TileScratch::new(c),
-                    |sc, t| {
-                        let mut out = Vec::new();
-                        if !bins.tiles[t].is_empty() {
-                            out.reserve(TILE * TILE * per);
-                            this.tile_forward(prep, t, sc, &mut out);
-                        }
-                        out
-                    },
-                )
-                .collect()
+            if prep.fast {
+                (0..bins.tiles.len())
+                    .into_par_iter()
+                    .map_init(
+                        || fast::Scratch32::new(c),
+                        |sc, t| {
+                            let mut out = Vec::new();
+                            if !bins.tiles[t].is_empty() {
+                                out.reserve(TILE * TILE * per);
+                                this.tile_forward32(prep, &prep.pxp, t, sc, &mut out);
+                            }
+                            out
+                        },
+                    )
+                    .collect()
+            } else {
+                (0..bins.tiles.len())
+                    .into_par_iter()
+                    .map_init(
+                        || TileScratch::new(c),
+                        |sc, t| {
+                            let mut out = Vec::new();
+                            if !bins.tiles[t].is_empty() {
+                                out.reserve(TILE * TILE * per);
+                                this.tile_forward(prep, t, sc, &mut out);
+                            }
+                            out
+                        },
+                    )
+                    .collect()
+            }
         };
         let bins = &prep.bins;
         let mut img = Vec::with_capacity(h * w * (c + 1));
@@ -586,32 +616,15 @@ impl<T: Real> Op<T> for SoftRasOp {
         let c = prep.channels;
         let go = ctx.grad_outputs[0].as_standard_layout();
         let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
-        // Per pixel, what every pair there needs, packed (C + 4 values): the attribute
-        // gradient g, then g_alpha P, g . I, 1 / Z and m (infinite where g is 0: skipped).
-        let pstride = PIX_STATS + c;
-        let bstride = c + 4;
-        let mut pb = vec![0.0; (go.len() / (c + 1)) * bstride];
-        pb.par_chunks_mut(bstride)
-            .zip(go.par_chunks(c + 1))
-            .zip(prep.pix.par_chunks(pstride))
-            .with_min_len(1024)
-            .for_each(|((b, g), st)| {
-                if g.iter().all(|&x| x == 0.0) {
-                    b[c + 3] = f64::INFINITY;
-                    return;
-                }
-                b[..c].copy_from_slice(&g[..c]);
-                b[c] = g[c] * st[2];
-                b[c + 1] = (0..c).map(|ch| g[ch] * st[PIX_STATS + ch]).sum();
-                b[c + 2] = 1.0 / st[1];
-                b[c + 3] = st[0];
-            });
         let stride = 3 * (4 + c);
-        // Per face: [dX, dY, dZ, dW, dattr...] of each corner, summed into the vertices in
-        // face order.
-        let per_face = prep
-            .bins
-            .per_face(stride, |fi, acc| self.face_gradient(prep, fi, &pb, acc));
+        let per_face = if prep.fast {
+            let planes = fast::Planes::new(prep, &go);
+            prep.bins.per_face(stride, |fi, acc| {
+                self.face_gradient32(prep, &prep.pxp, fi, &planes, acc)
+            })
+        } else {
+            self.per_face_f64(prep, &go)
+        };
         let nv = prep.ndc.len();
         let mut gclip = vec![0.0; nv * 4];
         let mut gattr = vec![0.0; nv * c];
@@ -638,6 +651,38 @@ impl<T: Real> Op<T> for SoftRasOp {
             ctx.needs_grad[0].then(|| to_t(gclip, &[nv, 4])),
             ctx.needs_grad[1].then(|| to_t(gattr, &[nv, c])),
         ])
+    }
+}
+
+impl SoftRasOp {
+    /// The `f64` backward's per-face sums ([`SoftRasOp::face_gradient`]).
+    fn per_face_f64(&self, prep: &Prep, go: &[f64]) -> crate::soft::common::PerFace {
+        let c = prep.channels;
+        // Per pixel, what every pair there needs, packed (C + 4 values): the attribute
+        // gradient g, then g_alpha P, g . I, 1 / Z and m (infinite where g is 0: skipped).
+        let pstride = PIX_STATS + c;
+        let bstride = c + 4;
+        let mut pb = vec![0.0; (go.len() / (c + 1)) * bstride];
+        pb.par_chunks_mut(bstride)
+            .zip(go.par_chunks(c + 1))
+            .zip(prep.pix.par_chunks(pstride))
+            .with_min_len(1024)
+            .for_each(|((b, g), st)| {
+                if g.iter().all(|&x| x == 0.0) {
+                    b[c + 3] = f64::INFINITY;
+                    return;
+                }
+                b[..c].copy_from_slice(&g[..c]);
+                b[c] = g[c] * st[2];
+                b[c + 1] = (0..c).map(|ch| g[ch] * st[PIX_STATS + ch]).sum();
+                b[c + 2] = 1.0 / st[1];
+                b[c + 3] = st[0];
+            });
+        // Per face: [dX, dY, dZ, dW, dattr...] of each corner, summed into the vertices in
+        // face order.
+        prep.bins.per_face(3 * (4 + c), |fi, acc| {
+            self.face_gradient(prep, fi, &pb, acc)
+        })
     }
 }
 

@@ -1,0 +1,277 @@
+#![allow(clippy::excessive_precision)] // polynomial coefficients as published
+//! Eight-lane `f32` values for the soft rasterizers' `f32` fast path ([`super::softras`]):
+//! plain arrays whose element-wise operations the compiler turns into 8-lane AVX vector
+//! instructions inside functions compiled with `#[target_feature(enable = "avx2")]`, and into
+//! SSE code (or scalar code) elsewhere, from the same source.
+//!
+//! Every operation is an IEEE single-precision operation per lane (no fused multiply-adds, no
+//! reassociation, integer conversions through bit tricks rather than saturating casts), so
+//! the AVX2 build and the portable fallback give bit-identical results; [`set_force_portable`]
+//! makes the kernels take the fallback, for tests.
+
+use std::ops::{Add, BitAnd, BitOr, Div, Mul, Neg, Not, Sub};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Lanes per vector.
+pub(crate) const LANES: usize = 8;
+
+/// Eight `f32` lanes.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[repr(C, align(32))]
+pub(crate) struct F8(pub [f32; LANES]);
+
+/// Eight lane masks, each all ones (true) or all zeros (false).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[repr(C, align(32))]
+pub(crate) struct M8(pub [u32; LANES]);
+
+macro_rules! lanewise {
+    ($tr:ident, $f:ident, $op:tt) => {
+        impl $tr for F8 {
+            type Output = F8;
+            #[inline(always)]
+            fn $f(self, o: F8) -> F8 {
+                F8(std::array::from_fn(|i| self.0[i] $op o.0[i]))
+            }
+        }
+    };
+}
+lanewise!(Add, add, +);
+lanewise!(Sub, sub, -);
+lanewise!(Mul, mul, *);
+lanewise!(Div, div, /);
+
+impl Neg for F8 {
+    type Output = F8;
+    #[inline(always)]
+    fn neg(self) -> F8 {
+        F8(self.0.map(|x| -x))
+    }
+}
+
+impl BitAnd for M8 {
+    type Output = M8;
+    #[inline(always)]
+    fn bitand(self, o: M8) -> M8 {
+        M8(std::array::from_fn(|i| self.0[i] & o.0[i]))
+    }
+}
+
+impl BitOr for M8 {
+    type Output = M8;
+    #[inline(always)]
+    fn bitor(self, o: M8) -> M8 {
+        M8(std::array::from_fn(|i| self.0[i] | o.0[i]))
+    }
+}
+
+impl Not for M8 {
+    type Output = M8;
+    #[inline(always)]
+    fn not(self) -> M8 {
+        M8(self.0.map(|x| !x))
+    }
+}
+
+#[inline(always)]
+fn mask(b: bool) -> u32 {
+    if b {
+        u32::MAX
+    } else {
+        0
+    }
+}
+
+impl M8 {
+    /// Whether any lane is set.
+    #[inline(always)]
+    pub fn any(self) -> bool {
+        self.0.iter().fold(0, |a, &b| a | b) != 0
+    }
+
+    /// Lane `l` set.
+    #[inline(always)]
+    pub fn lane(self, l: usize) -> bool {
+        self.0[l] != 0
+    }
+}
+
+/// `a` where `m` is set, else `b`.
+#[inline(always)]
+pub(crate) fn select(m: M8, a: F8, b: F8) -> F8 {
+    F8(std::array::from_fn(|i| {
+        f32::from_bits((m.0[i] & a.0[i].to_bits()) | (!m.0[i] & b.0[i].to_bits()))
+    }))
+}
+
+impl F8 {
+    #[inline(always)]
+    pub fn splat(x: f32) -> F8 {
+        F8([x; LANES])
+    }
+
+    /// The first eight values of `s`.
+    #[inline(always)]
+    pub fn load(s: &[f32]) -> F8 {
+        F8(s[..LANES].try_into().expect("eight values"))
+    }
+
+    /// Into the first eight values of `s`.
+    #[inline(always)]
+    pub fn store(self, s: &mut [f32]) {
+        s[..LANES].copy_from_slice(&self.0);
+    }
+
+    /// `min(self, o)` per lane (`o` where either is NaN).
+    #[inline(always)]
+    pub fn min(self, o: F8) -> F8 {
+        F8(std::array::from_fn(|i| {
+            if self.0[i] < o.0[i] {
+                self.0[i]
+            } else {
+                o.0[i]
+            }
+        }))
+    }
+
+    /// `max(self, o)` per lane (`o` where either is NaN).
+    #[inline(always)]
+    pub fn max(self, o: F8) -> F8 {
+        F8(std::array::from_fn(|i| {
+            if self.0[i] > o.0[i] {
+                self.0[i]
+            } else {
+                o.0[i]
+            }
+        }))
+    }
+
+    #[inline(always)]
+    pub fn abs(self) -> F8 {
+        F8(self.0.map(|x| f32::from_bits(x.to_bits() & 0x7fff_ffff)))
+    }
+
+    #[inline(always)]
+    pub fn lt(self, o: F8) -> M8 {
+        M8(std::array::from_fn(|i| mask(self.0[i] < o.0[i])))
+    }
+
+    #[inline(always)]
+    pub fn le(self, o: F8) -> M8 {
+        M8(std::array::from_fn(|i| mask(self.0[i] <= o.0[i])))
+    }
+
+    #[inline(always)]
+    pub fn gt(self, o: F8) -> M8 {
+        M8(std::array::from_fn(|i| mask(self.0[i] > o.0[i])))
+    }
+
+    #[inline(always)]
+    pub fn ge(self, o: F8) -> M8 {
+        M8(std::array::from_fn(|i| mask(self.0[i] >= o.0[i])))
+    }
+
+    /// The lanes summed in `f64`, lane 0 first (a fixed order: deterministic).
+    #[inline(always)]
+    pub fn sum_f64(self) -> f64 {
+        self.0.iter().fold(0.0f64, |a, &x| a + x as f64)
+    }
+}
+
+/// 1.5 * 2^23: `(t + MAGIC) - MAGIC` rounds `t` to the nearest integer, and the low bits of
+/// `t + MAGIC` hold that integer, for |t| < 2^22 (no saturating float-to-int cast, which
+/// compiles to scalar code per lane).
+const MAGIC: f32 = 12_582_912.0;
+
+/// Smallest argument of [`exp8`]: below it `e^x` is not a normal `f32`; callers treat
+/// `x < EXP_MIN` as `e^x = 0` (a relative change below `1.2e-38` of the largest term of any
+/// sum they take, see [`super::softras`]).
+pub(crate) const EXP_MIN: f32 = -87.0;
+
+/// `e^x` per lane for `x` in `[EXP_MIN, 88]` (clamped to it): Cody-Waite reduction `x = n ln 2
+/// + r`, `|r| <= ln(2) / 2`, and Cephes' degree-7 minimax polynomial for `e^r` (as
+/// `autodiff`'s vectorised `exp`), within 2 ulp of the exact value (tested).
+#[inline(always)]
+pub(crate) fn exp8(x: F8) -> F8 {
+    F8(std::array::from_fn(|i| {
+        let x = x.0[i];
+        let x = if x > EXP_MIN { x } else { EXP_MIN };
+        let x = if x < 88.0 { x } else { 88.0 };
+        let t = x * std::f32::consts::LOG2_E + MAGIC;
+        let nf = t - MAGIC;
+        let n = (t.to_bits() as i32).wrapping_sub(MAGIC.to_bits() as i32);
+        let r = (x - nf * 0.693_359_4) - nf * -2.121_944_4e-4;
+        let z = r * r;
+        let p = (((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r
+            + 4.166_579_6e-2)
+            * r
+            + 1.666_666_5e-1)
+            * r
+            + 5.000_000_1e-1)
+            * z
+            + r
+            + 1.0;
+        p * f32::from_bits((n.wrapping_add(127) as u32) << 23)
+    }))
+}
+
+static FORCE_PORTABLE: AtomicBool = AtomicBool::new(false);
+
+/// Makes the kernels take the portable build even where AVX2 is available (tests: both builds
+/// must agree bit for bit).
+#[cfg(test)]
+pub(crate) fn set_force_portable(on: bool) {
+    FORCE_PORTABLE.store(on, Ordering::Relaxed);
+}
+
+/// Whether the AVX2 builds of the kernels may run: the CPU has AVX2 (runtime detection) and
+/// the portable build is not forced.
+#[inline]
+pub(crate) fn use_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        !FORCE_PORTABLE.load(Ordering::Relaxed) && std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use autodiff::rng::Rng;
+
+    /// [`exp8`] within 2 ulp of `f64::exp` rounded to `f32`, over its whole range.
+    #[test]
+    fn exp8_is_accurate() {
+        let mut rng = Rng::new(9);
+        let mut worst = 0.0f64;
+        for _ in 0..20_000 {
+            let xs = F8(std::array::from_fn(|_| rng.uniform(-87.0, 88.0) as f32));
+            let e = exp8(xs);
+            for l in 0..LANES {
+                let exact = (xs.0[l] as f64).exp();
+                let ulp = (exact as f32).abs() * f32::EPSILON;
+                worst = worst.max((e.0[l] as f64 - exact).abs() / ulp as f64);
+            }
+        }
+        assert!(worst <= 2.0, "{worst} ulp");
+        assert_eq!(exp8(F8::splat(0.0)).0[0], 1.0);
+    }
+
+    #[test]
+    fn select_and_compare() {
+        let a = F8([0.0, 1.0, -1.0, 2.0, f32::INFINITY, -0.0, 3.0, 4.0]);
+        let b = F8::splat(1.0);
+        let m = a.lt(b);
+        assert_eq!(
+            select(m, a, b).0,
+            [0.0, 1.0, -1.0, 1.0, 1.0, -0.0, 1.0, 1.0]
+        );
+        assert!(m.any() && !(m & !m).any());
+        assert_eq!(a.min(b).0[3], 1.0);
+        assert_eq!(a.max(b).0[3], 2.0);
+    }
+}

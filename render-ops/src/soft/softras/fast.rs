@@ -1,0 +1,807 @@
+//! The `f32` fast path of SoftRas: the same forward and backward as the `f64` evaluation of
+//! [`super`], with the per-pair work done eight pixels at a time along each row span in single
+//! precision ([`crate::soft::simd`]).
+//!
+//! Taken for `f32` tapes with at most [`FAST_MAX_C`] attribute channels and screen-space
+//! interpolation (`perspective_correct` off); `f64` tapes (gradient checking) and the other
+//! settings keep the scalar `f64` evaluation.
+//!
+//! Lanes are 8 consecutive columns of one image row, aligned to multiples of 8 (a tile row is
+//! two such chunks). Per face the geometry is taken relative to its first vertex (pixel
+//! offsets are formed in `f64` and rounded once), so no coordinate loses more than an `f32`
+//! rounding. Depth enters the blend through `u = (z - near) / (far - near) = 1 - zn`, whose
+//! per-pixel minimum `u_min = 1 - m` is accumulated instead of `m`: `(zn_f - m) / gamma =
+//! (u_min - u_f) / gamma` then has an absolute error of a few `f32` roundings of `u` (about
+//! `1e-9`) divided by `gamma`, not of `zn ~ 1`. Per-pixel sums run in face order (each tile's
+//! pairs are kept as 8-lane chunks in tile face order), per-face gradient sums in row-major
+//! order within each face with a fixed lane order, so results are bit-identical for any
+//! thread count, and the AVX2 and portable builds agree bit for bit.
+//!
+//! Truncation beyond the `f64` path: a depth weight `e_f = exp((zn_f - m) / gamma)` below
+//! `e^-87` (the smallest normal `f32` range) is taken as 0. Some pair at the pixel (or the
+//! background, when `m = eps`) has `zn_f = m`, i.e. `e_f = 1`; a dropped term is therefore
+//! below `1.7e-38` times the largest `e` of the normaliser and changes `I` and its gradient
+//! by less than that relative amount times `1 / D` of the largest term, far below `f32`
+//! precision for any `D >= threshold >= 1e-30`.
+
+use super::{Prep, SoftRasOp, PIX_STATS};
+use crate::soft::common::{FaceGeom, TILE};
+use crate::soft::simd::{exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
+
+/// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
+pub(super) const FAST_MAX_C: usize = 4;
+
+/// Tile pixels.
+const TP: usize = TILE * TILE;
+
+/// One face's screen geometry in `f32`, relative to its first vertex `o`.
+#[derive(Clone, Copy)]
+struct Geom32 {
+    /// First vertex (origin of the relative coordinates), NDC, `f64`.
+    o: [f64; 2],
+    /// `w_k(q) = bw[k][0] + bw[k][1] q_x + bw[k][2] q_y`, `q = p - o`.
+    bw: [[f32; 3]; 3],
+    alt: [f32; 3],
+    /// Vertices relative to `o`.
+    v: [[f32; 2]; 3],
+    /// Edge `k`: `v[k + 1] - v[k]`.
+    e: [[f32; 2]; 3],
+    inv_ee: [f32; 3],
+    inv_d: [f32; 3],
+}
+
+impl Geom32 {
+    #[inline(always)]
+    fn new(g: &FaceGeom) -> Self {
+        let o = g.v[0];
+        let v = g.v.map(|q| [(q[0] - o[0]) as f32, (q[1] - o[1]) as f32]);
+        let e = std::array::from_fn(|k| {
+            let (a, b) = (g.v[k], g.v[(k + 1) % 3]);
+            [(b[0] - a[0]) as f32, (b[1] - a[1]) as f32]
+        });
+        Self {
+            o,
+            bw: g.bw.map(|b| b.map(|x| x as f32)),
+            alt: g.alt.map(|x| x as f32),
+            v,
+            e,
+            inv_ee: g.inv_ee.map(|x| x as f32),
+            inv_d: g.inv_d.map(|x| x as f32),
+        }
+    }
+}
+
+/// Constants of one render.
+#[derive(Clone, Copy)]
+struct K {
+    inv_sigma: f32,
+    cut2: f32,
+    near: f32,
+    zscale: f32,
+}
+
+/// Eight (face, pixel) pairs of one row chunk: the lanes `keep` are kept (pixel within the
+/// row span, centre inside the triangle or within the cut-off, clipped barycentrics that
+/// normalise); the others hold neutral finite values (`D = 0`, `wn = z = 0`, `u = +inf`).
+#[derive(Clone, Copy)]
+struct Pair8 {
+    keep: M8,
+    /// `x = s d^2 / sigma`.
+    x: F8,
+    /// Barycentrics, raw and clipped-renormalised; `1 / sum` of the clipped ones.
+    w: [F8; 3],
+    wn: [F8; 3],
+    inv_sumwc: F8,
+    /// View depth and `u = (z - near) / (far - near)`.
+    z: F8,
+    u: F8,
+    /// Per edge: closest parameter `t` and offset `r = q - closest point`.
+    t: [F8; 3],
+    rx: [F8; 3],
+    ry: [F8; 3],
+    /// The edge of the closest boundary point (as [`FaceGeom::closest_inside`] for an inside
+    /// centre off the boundary, as [`FaceGeom::closest`] otherwise).
+    sel: [M8; 3],
+}
+
+/// The pairs of face `g` with the pixel centres `(o_x + qx, o_y + qy)` of the lanes `valid`,
+/// or `None` when none is kept (eq. (1) of the paper, `D = sigmoid(s d^2 / sigma)`; see
+/// [`SoftRasOp::pair`]).
+#[inline(always)]
+fn pair8(g: &Geom32, qx: F8, qy: f32, valid: M8, k: &K) -> Option<Pair8> {
+    let zero = F8::splat(0.0);
+    let one = F8::splat(1.0);
+    let w: [F8; 3] = std::array::from_fn(|i| {
+        F8::splat(g.bw[i][0]) + F8::splat(g.bw[i][1]) * qx + F8::splat(g.bw[i][2] * qy)
+    });
+    let inside = w[0].ge(zero) & w[1].ge(zero) & w[2].ge(zero);
+    let da: [F8; 3] = std::array::from_fn(|i| w[i] * F8::splat(g.alt[i]));
+    let din = da[0].min(da[1]).min(da[2]);
+    let dob = (-da[0]).max(-da[1]).max(-da[2]);
+    let cut2 = F8::splat(k.cut2);
+    if !(valid & (inside | (dob * dob).le(cut2))).any() {
+        return None;
+    }
+    // Closest point on each edge (edge i from vertex i to vertex i + 1).
+    let mut t = [zero; 3];
+    let mut rx = [zero; 3];
+    let mut ry = [zero; 3];
+    let mut d2 = [zero; 3];
+    for i in 0..3 {
+        let apx = qx - F8::splat(g.v[i][0]);
+        let apy = F8::splat(qy - g.v[i][1]);
+        let (ex, ey) = (F8::splat(g.e[i][0]), F8::splat(g.e[i][1]));
+        t[i] = ((apx * ex + apy * ey) * F8::splat(g.inv_ee[i]))
+            .max(zero)
+            .min(one);
+        rx[i] = apx - t[i] * ex;
+        ry[i] = apy - t[i] * ey;
+        d2[i] = rx[i] * rx[i] + ry[i] * ry[i];
+    }
+    // Nearest edge, the first one winning ties.
+    let o1 = d2[1].lt(d2[0]);
+    let b01 = select(o1, d2[1], d2[0]);
+    let o2 = d2[2].lt(b01);
+    let d2o = select(o2, d2[2], b01);
+    let out_sel = [!o1 & !o2, o1 & !o2, o2];
+    let inv_sigma = F8::splat(k.inv_sigma);
+    let x = select(inside, din * din * inv_sigma, -(d2o * inv_sigma));
+    // Inside: the foot on the nearest edge line, i.e. the edge opposite the smallest
+    // w_k alt_k (k = 0 -> edge 1, 1 -> 2, 2 -> 0).
+    let k0 = da[0].le(da[1]) & da[0].le(da[2]);
+    let k1 = !k0 & da[1].le(da[2]);
+    let k2 = !k0 & !k1;
+    let use_in = x.gt(zero);
+    let sel = [
+        select_m(use_in, k2, out_sel[0]),
+        select_m(use_in, k0, out_sel[1]),
+        select_m(use_in, k1, out_sel[2]),
+    ];
+    let wc = w.map(|x| x.max(zero).min(one));
+    let sumwc = wc[0] + wc[1] + wc[2];
+    let keep = valid & (inside | d2o.le(cut2)) & sumwc.gt(zero);
+    if !keep.any() {
+        return None;
+    }
+    let inv_sumwc = select(keep, one / sumwc, zero);
+    let wn = wc.map(|x| x * inv_sumwc);
+    let s = wn[0] * F8::splat(g.inv_d[0])
+        + wn[1] * F8::splat(g.inv_d[1])
+        + wn[2] * F8::splat(g.inv_d[2]);
+    let z = select(keep, one / s, zero);
+    let u = select(
+        keep,
+        (z - F8::splat(k.near)) * F8::splat(k.zscale),
+        F8::splat(f32::INFINITY),
+    );
+    Some(Pair8 {
+        keep,
+        x,
+        w,
+        wn,
+        inv_sumwc,
+        z,
+        u,
+        t,
+        rx,
+        ry,
+        sel,
+    })
+}
+
+#[inline(always)]
+fn select_m(m: M8, a: M8, b: M8) -> M8 {
+    (m & a) | (!m & b)
+}
+
+/// `(D, 1 - D)` of the kept lanes from one exponential (0 and 1 elsewhere).
+#[inline(always)]
+fn sigmoid8(p: &Pair8) -> (F8, F8) {
+    let e = exp8(-p.x.abs());
+    let one = F8::splat(1.0);
+    let r = one / (one + e);
+    let pos = p.x.ge(F8::splat(0.0));
+    let dd = select(pos, r, e * r);
+    let omd = select(pos, e * r, r);
+    (select(p.keep, dd, F8::splat(0.0)), select(p.keep, omd, one))
+}
+
+/// Lanes `a..=b` of the chunk starting at column `cs`.
+#[inline(always)]
+fn lanes_in(cs: usize, a: usize, b: usize) -> M8 {
+    M8(std::array::from_fn(|l| {
+        let c = cs + l;
+        if a <= c && c <= b {
+            u32::MAX
+        } else {
+            0
+        }
+    }))
+}
+
+/// Pixel offsets `px[cs + l] - o_x` in `f64`, rounded to `f32` once.
+#[inline(always)]
+fn offsets(px: &[f64], cs: usize, ox: f64) -> F8 {
+    let p: &[f64; LANES] = px[cs..cs + LANES].try_into().expect("eight columns");
+    F8(p.map(|x| (x - ox) as f32))
+}
+
+/// One 8-lane chunk of kept pairs of the forward's first pass, for the second.
+#[derive(Clone, Copy)]
+struct Chunk {
+    /// Tile-local index of lane 0 (row-major, 16 a row).
+    lp: usize,
+    dd: F8,
+    u: F8,
+    wn: [F8; 3],
+}
+
+/// Per-thread scratch of the `f32` forward (tile-local row-major pixels).
+pub(super) struct Scratch32 {
+    chunks: Vec<Chunk>,
+    runs: Vec<usize>,
+    count: [f32; TP],
+    umin: [f32; TP],
+    prod: [f32; TP],
+    zsum: [f32; TP],
+    lsum: [f64; TP],
+    /// Attribute sums, channel-planar (`ch * TP + lp`).
+    col: Vec<f32>,
+}
+
+impl Scratch32 {
+    pub(super) fn new(c: usize) -> Self {
+        Self {
+            chunks: Vec::new(),
+            runs: Vec::new(),
+            count: [0.0; TP],
+            umin: [0.0; TP],
+            prod: [0.0; TP],
+            zsum: [0.0; TP],
+            lsum: [0.0; TP],
+            col: vec![0.0; c * TP],
+        }
+    }
+}
+
+/// `m = max(eps, max_f zn_f)` of a pixel from its `u_min` (start value `u0 = 1 - eps` in
+/// `f32`).
+#[inline]
+fn pixel_m(umin: f32, u0: f32, eps: f64) -> f64 {
+    if umin >= u0 {
+        eps
+    } else {
+        1.0 - umin as f64
+    }
+}
+
+/// Column centres `px` padded with 8 more (extrapolated) for whole chunks at the right edge.
+pub(super) fn padded_px(px: &[f64]) -> Vec<f64> {
+    let n = px.len();
+    let d = if n > 1 { px[1] - px[0] } else { 1.0 };
+    px.iter()
+        .copied()
+        .chain((0..LANES).map(|i| px[n - 1] + d * (i + 1) as f64))
+        .collect()
+}
+
+impl SoftRasOp {
+    fn consts(&self) -> K {
+        let s = &self.s;
+        K {
+            inv_sigma: (1.0 / s.sigma) as f32,
+            cut2: s.cutoff_sq() as f32,
+            near: s.near as f32,
+            zscale: (1.0 / (s.far - s.near)) as f32,
+        }
+    }
+
+    /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time (same outputs, same layout).
+    pub(super) fn tile_forward32(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        t: usize,
+        sc: &mut Scratch32,
+        out: &mut Vec<f64>,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if use_avx2() {
+            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
+            unsafe { self.tile_forward32_avx2(prep, pxp, t, sc, out) };
+            return;
+        }
+        self.tile_forward32_impl(prep, pxp, t, sc, out);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn tile_forward32_avx2(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        t: usize,
+        sc: &mut Scratch32,
+        out: &mut Vec<f64>,
+    ) {
+        self.tile_forward32_impl(prep, pxp, t, sc, out);
+    }
+
+    #[inline(always)]
+    fn tile_forward32_impl(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        t: usize,
+        sc: &mut Scratch32,
+        out: &mut Vec<f64>,
+    ) {
+        let s = &self.s;
+        let c = prep.channels;
+        let bins = &prep.bins;
+        let tf = &bins.tiles[t];
+        let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
+        let k = self.consts();
+        let inv_gamma = F8::splat((1.0 / s.gamma) as f32);
+        sc.chunks.clear();
+        sc.runs.clear();
+        sc.count.fill(0.0);
+        sc.umin.fill((1.0 - s.eps) as f32);
+        sc.prod.fill(1.0);
+        // Pass 1: pairs, u_min and P.
+        for &fi in tf.iter() {
+            sc.runs.push(sc.chunks.len());
+            let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
+            else {
+                continue;
+            };
+            let g = Geom32::new(&bins.geoms[fi as usize]);
+            let span = bins.span(fi as usize);
+            for row in r0..=r1 {
+                let py = bins.py[row];
+                let Some((a, b)) = span.row(py, c0, c1) else {
+                    continue;
+                };
+                let qy = (py - g.o[1]) as f32;
+                let mut cs = c_base + (a - c_base) / LANES * LANES;
+                while cs <= b {
+                    let valid = lanes_in(cs, a, b);
+                    if let Some(p) = pair8(&g, offsets(pxp, cs, g.o[0]), qy, valid, &k) {
+                        let (dd, omd) = sigmoid8(&p);
+                        let lp = (row - r_base) * TILE + cs - c_base;
+                        let ones = select(p.keep, F8::splat(1.0), F8::splat(0.0));
+                        (F8::load(&sc.count[lp..]) + ones).store(&mut sc.count[lp..]);
+                        F8::load(&sc.umin[lp..]).min(p.u).store(&mut sc.umin[lp..]);
+                        (F8::load(&sc.prod[lp..]) * omd).store(&mut sc.prod[lp..]);
+                        sc.chunks.push(Chunk {
+                            lp,
+                            dd,
+                            u: p.u,
+                            wn: p.wn,
+                        });
+                    }
+                    cs += LANES;
+                }
+            }
+        }
+        sc.runs.push(sc.chunks.len());
+        // Background terms, e_b = exp((eps - m) / gamma), m = 1 - u_min (exactly eps where
+        // no face has zn > eps, u_min still at its start value).
+        let u0 = (1.0 - s.eps) as f32;
+        for lp in 0..TP {
+            let m = pixel_m(sc.umin[lp], u0, s.eps);
+            let eb = ((s.eps - m) / s.gamma).exp();
+            sc.zsum[lp] = eb as f32;
+            sc.lsum[lp] = 0.0;
+            for ch in 0..c {
+                sc.col[ch * TP + lp] = (eb * s.background.get(ch).copied().unwrap_or(0.0)) as f32;
+            }
+        }
+        // Pass 2: the blend (eq. (6)), e_f = exp((u_min - u_f) / gamma).
+        let mut fa = [[F8::default(); FAST_MAX_C]; 3];
+        for (li, &fi) in tf.iter().enumerate() {
+            let chunks = &sc.chunks[sc.runs[li]..sc.runs[li + 1]];
+            if chunks.is_empty() {
+                continue;
+            }
+            let f = self.faces[fi as usize];
+            for kk in 0..3 {
+                for ch in 0..c {
+                    fa[kk][ch] = F8::splat(prep.attrs[f[kk] as usize * c + ch] as f32);
+                }
+            }
+            for ck in chunks {
+                let lp = ck.lp;
+                let tt = (F8::load(&sc.umin[lp..]) - ck.u) * inv_gamma;
+                let ef = select(tt.lt(F8::splat(EXP_MIN)), F8::splat(0.0), exp8(tt));
+                let we = ck.dd * ef;
+                (F8::load(&sc.zsum[lp..]) + we).store(&mut sc.zsum[lp..]);
+                for ch in 0..c {
+                    let a = ck.wn[0] * fa[0][ch] + ck.wn[1] * fa[1][ch] + ck.wn[2] * fa[2][ch];
+                    let o = ch * TP + lp;
+                    (F8::load(&sc.col[o..]) + we * a).store(&mut sc.col[o..]);
+                }
+                // Faint coverage (P >= 1/2): sum log1p(-D) in f64 for the silhouette.
+                let faint = F8::load(&sc.prod[lp..]).ge(F8::splat(0.5)) & ck.dd.gt(F8::splat(0.0));
+                if faint.any() {
+                    for l in 0..LANES {
+                        if faint.lane(l) {
+                            sc.lsum[lp + l] += (-(ck.dd.0[l] as f64)).ln_1p();
+                        }
+                    }
+                }
+            }
+        }
+        out.clear();
+        for lp in 0..TP {
+            if sc.count[lp] == 0.0 {
+                out.extend((0..c).map(|ch| s.background.get(ch).copied().unwrap_or(0.0)));
+                out.push(0.0);
+            } else {
+                let z = sc.zsum[lp] as f64;
+                out.extend((0..c).map(|ch| sc.col[ch * TP + lp] as f64 / z));
+                let p = sc.prod[lp] as f64;
+                out.push(if p < 0.5 {
+                    1.0 - p
+                } else {
+                    -sc.lsum[lp].exp_m1()
+                });
+            }
+            out.extend([
+                pixel_m(sc.umin[lp], u0, s.eps),
+                sc.zsum[lp] as f64,
+                sc.prod[lp] as f64,
+            ]);
+        }
+    }
+}
+
+/// The backward's per-pixel values for the `f32` path, planar (`plane * n + pixel`, `n` the
+/// pixel count plus [`LANES`] of padding): the `C` attribute gradients `g`, then `g_alpha P`,
+/// `g . I`, `1 / Z` and `u_min = 1 - m` (`-inf` where `g` is 0: the pixel is skipped).
+pub(super) struct Planes {
+    pub v: Vec<f32>,
+    pub n: usize,
+}
+
+impl Planes {
+    pub(super) fn new(prep: &Prep, go: &[f64]) -> Self {
+        let c = prep.channels;
+        let pstride = PIX_STATS + c;
+        let pixels = go.len() / (c + 1);
+        let n = pixels + LANES;
+        let mut v = vec![0.0f32; (c + 4) * n];
+        v[(c + 3) * n..].fill(f32::NEG_INFINITY);
+        for (pi, (g, st)) in go.chunks(c + 1).zip(prep.pix.chunks(pstride)).enumerate() {
+            if g.iter().all(|&x| x == 0.0) {
+                continue;
+            }
+            for ch in 0..c {
+                v[ch * n + pi] = g[ch] as f32;
+            }
+            v[c * n + pi] = (g[c] * st[2]) as f32;
+            v[(c + 1) * n + pi] = (0..c).map(|ch| g[ch] * st[PIX_STATS + ch]).sum::<f64>() as f32;
+            v[(c + 2) * n + pi] = (1.0 / st[1]) as f32;
+            v[(c + 3) * n + pi] = (1.0 - st[0]) as f32;
+        }
+        Self { v, n }
+    }
+}
+
+impl SoftRasOp {
+    /// [`SoftRasOp::face_gradient`] in `f32`, 8 pixels at a time: per-face sums in `f32`
+    /// vectors within a row, added to `f64` sums after each row.
+    pub(super) fn face_gradient32(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        fi: usize,
+        pl: &Planes,
+        acc: &mut [f64],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if use_avx2() {
+            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
+            unsafe { self.face_gradient32_avx2(prep, pxp, fi, pl, acc) };
+            return;
+        }
+        self.face_gradient32_impl(prep, pxp, fi, pl, acc);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn face_gradient32_avx2(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        fi: usize,
+        pl: &Planes,
+        acc: &mut [f64],
+    ) {
+        self.face_gradient32_impl(prep, pxp, fi, pl, acc);
+    }
+
+    #[inline(always)]
+    fn face_gradient32_impl(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        fi: usize,
+        pl: &Planes,
+        acc: &mut [f64],
+    ) {
+        let s = &self.s;
+        let bins = &prep.bins;
+        let rc = bins.rects[fi];
+        if rc[0] > rc[1] {
+            return;
+        }
+        let c = prep.channels;
+        let stride = 4 + c;
+        let f = self.faces[fi];
+        let geom = &bins.geoms[fi];
+        let g = Geom32::new(geom);
+        let k = self.consts();
+        let inv_area = F8::splat((1.0 / geom.area) as f32);
+        let inv_gamma = F8::splat((1.0 / s.gamma) as f32);
+        let inv_sigma = F8::splat(k.inv_sigma);
+        let zscale = F8::splat(k.zscale);
+        let zero = F8::splat(0.0);
+        let one = F8::splat(1.0);
+        let mut fa = [[zero; FAST_MAX_C]; 3];
+        for kk in 0..3 {
+            for ch in 0..c {
+                fa[kk][ch] = F8::splat(prep.attrs[f[kk] as usize * c + ch] as f32);
+            }
+        }
+        let inv_d = g.inv_d.map(F8::splat);
+        let n = pl.n;
+        let plane = |i: usize, pi: usize| F8::load(&pl.v[i * n + pi..]);
+        // f64 sums over rows: NDC and view-depth gradients of the vertices, attributes.
+        let mut gv = [[0.0f64; 2]; 3];
+        let mut gdep = [0.0f64; 3];
+        let mut gattr = [[0.0f64; FAST_MAX_C]; 3];
+        let (c0, c1c, r0, r1) = (
+            rc[0] as usize,
+            rc[1] as usize,
+            rc[2] as usize,
+            rc[3] as usize,
+        );
+        let span = bins.span(fi);
+        for row in r0..=r1 {
+            let py = bins.py[row];
+            let Some((a, b)) = span.row(py, c0, c1c) else {
+                continue;
+            };
+            let qy = (py - g.o[1]) as f32;
+            let mut vgv = [[zero; 2]; 3];
+            let mut vgdep = [zero; 3];
+            let mut vgattr = [[zero; FAST_MAX_C]; 3];
+            let mut any = false;
+            let mut cs = a / LANES * LANES;
+            while cs <= b {
+                let pi = row * s.width + cs;
+                let um = plane(c + 3, pi);
+                let valid = lanes_in(cs, a, b) & um.gt(F8::splat(f32::NEG_INFINITY));
+                let col = cs;
+                cs += LANES;
+                if !valid.any() {
+                    continue;
+                }
+                let qx = offsets(pxp, col, g.o[0]);
+                let Some(q) = pair8(&g, qx, qy, valid, &k) else {
+                    continue;
+                };
+                any = true;
+                let (dd, omd) = sigmoid8(&q);
+                let tt = (um - q.u) * inv_gamma;
+                let ef = select(tt.lt(F8::splat(EXP_MIN)) | !q.keep, zero, exp8(tt));
+                let (ga_prod, g_img, inv_z) = (plane(c, pi), plane(c + 1, pi), plane(c + 2, pi));
+                let mut gch = [zero; FAST_MAX_C];
+                // g . (a_f - I).
+                let mut cdiff = -g_img;
+                for ch in 0..c {
+                    gch[ch] = plane(ch, pi);
+                    let af = q.wn[0] * fa[0][ch] + q.wn[1] * fa[1][ch] + q.wn[2] * fa[2][ch];
+                    cdiff = cdiff + gch[ch] * af;
+                }
+                let gblend = ef * cdiff * inv_z;
+                let gscale = dd * ef * inv_z;
+                let gx = select(q.keep, gblend * dd * omd + ga_prod * dd, zero);
+                let g_zn = dd * gblend * inv_gamma;
+                // Coverage: d(d2) through the closest boundary point.
+                let sign = select(q.x.ge(zero), one, -one);
+                let gd2 = gx * sign * inv_sigma * F8::splat(-2.0);
+                for e in 0..3 {
+                    let ce = select(q.sel[e], gd2, zero);
+                    let (ci, cj) = (ce * (one - q.t[e]), ce * q.t[e]);
+                    let j = (e + 1) % 3;
+                    vgv[e][0] = vgv[e][0] + ci * q.rx[e];
+                    vgv[e][1] = vgv[e][1] + ci * q.ry[e];
+                    vgv[j][0] = vgv[j][0] + cj * q.rx[e];
+                    vgv[j][1] = vgv[j][1] + cj * q.ry[e];
+                }
+                // Depth and attributes.
+                let gz = -(g_zn * zscale);
+                let mut gwn = [zero; 3];
+                for ch in 0..c {
+                    let gc = gch[ch] * gscale;
+                    for kk in 0..3 {
+                        gwn[kk] = gwn[kk] + gc * fa[kk][ch];
+                        vgattr[kk][ch] = vgattr[kk][ch] + gc * q.wn[kk];
+                    }
+                }
+                let gzinv = -(q.z * q.z * gz);
+                for kk in 0..3 {
+                    gwn[kk] = gwn[kk] + gzinv * inv_d[kk];
+                    vgdep[kk] = vgdep[kk] - gzinv * q.wn[kk] * inv_d[kk] * inv_d[kk];
+                }
+                // Clip-and-renormalise, then raw barycentrics w_k = n_k / sum n.
+                let dot = gwn[0] * q.wn[0] + gwn[1] * q.wn[1] + gwn[2] * q.wn[2];
+                let gw: [F8; 3] = std::array::from_fn(|kk| {
+                    let open = q.w[kk].gt(zero) & q.w[kk].lt(one);
+                    select(open, (gwn[kk] - dot) * q.inv_sumwc, zero)
+                });
+                let dot2 = gw[0] * q.w[0] + gw[1] * q.w[1] + gw[2] * q.w[2];
+                for kk in 0..3 {
+                    let gn = (gw[kk] - dot2) * inv_area;
+                    let (i, j) = ((kk + 1) % 3, (kk + 2) % 3);
+                    // a = v_i - p, b = v_j - p (relative to the first vertex).
+                    let (ax, ay) = (F8::splat(g.v[i][0]) - qx, F8::splat(g.v[i][1] - qy));
+                    let (bx, by) = (F8::splat(g.v[j][0]) - qx, F8::splat(g.v[j][1] - qy));
+                    vgv[i][0] = vgv[i][0] + gn * by;
+                    vgv[i][1] = vgv[i][1] - gn * bx;
+                    vgv[j][0] = vgv[j][0] - gn * ay;
+                    vgv[j][1] = vgv[j][1] + gn * ax;
+                }
+            }
+            if !any {
+                continue;
+            }
+            for kk in 0..3 {
+                gv[kk][0] += vgv[kk][0].sum_f64();
+                gv[kk][1] += vgv[kk][1].sum_f64();
+                gdep[kk] += vgdep[kk].sum_f64();
+                for ch in 0..c {
+                    gattr[kk][ch] += vgattr[kk][ch].sum_f64();
+                }
+            }
+        }
+        for kk in 0..3 {
+            let gc =
+                crate::soft::common::ndc_to_clip(gv[kk], geom.v[kk], prep.depth[f[kk] as usize]);
+            let o = kk * stride;
+            acc[o] += gc[0];
+            acc[o + 1] += gc[1];
+            acc[o + 3] += gc[2] + gdep[kk];
+            for ch in 0..c {
+                acc[o + 4 + ch] += gattr[kk][ch];
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use autodiff::ndarray::{ArrayD, IxDyn};
+    use autodiff::{Real, Tape};
+
+    use crate::camera::Camera;
+    use crate::mesh::Mesh;
+    use crate::soft::simd::set_force_portable;
+    use crate::soft::{softras, SoftSettings};
+    use crate::transform::to_clip;
+
+    /// Image, position gradient and colour gradient of the bench scene (an icosphere under the
+    /// peers' camera, per-vertex colours, loss `sum((image - 0.25)^2)`) on a `T` tape.
+    fn render<T: Real>(
+        subdiv: u32,
+        size: usize,
+        sigma: f64,
+        threads: usize,
+    ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let mesh = Mesh::<f64>::icosphere(subdiv, 1.0);
+        let nv = mesh.positions.len();
+        let pos = ArrayD::from_shape_vec(
+            IxDyn(&[nv, 3]),
+            mesh.positions
+                .iter()
+                .flatten()
+                .map(|&x| T::from_f64c(x))
+                .collect(),
+        )
+        .unwrap();
+        let col = pos.mapv(|x| T::from_f64c(0.5 + 0.5 * x.to_f64c()));
+        let faces = Arc::new(mesh.faces.clone());
+        let vp = Camera::perspective_look_at(
+            [0.3, 0.2, -3.0],
+            [0.0; 3],
+            [0.0, -1.0, 0.0],
+            2.0 * (0.5f64 / 1.1).atan(),
+            1.0,
+            1.0,
+            100.0,
+        )
+        .unwrap()
+        .view_proj();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let tape = Tape::<T>::new();
+            let p = tape.var(pos.clone(), true);
+            let c = tape.var(col.clone(), true);
+            let clip = to_clip(p, &vp);
+            let mut s = SoftSettings::new(size, size, 1.0, 100.0);
+            s.sigma = sigma;
+            s.background = vec![0.1, 0.2, 0.3];
+            let img = softras(clip, c, faces.clone(), &s).unwrap();
+            let target = tape.constant(ArrayD::from_elem(
+                IxDyn(&[size, size, 4]),
+                T::from_f64c(0.25),
+            ));
+            let g = tape.backward((img - target).square().sum()).unwrap();
+            let f = |t: &ArrayD<T>| t.iter().map(|x| x.to_f64c()).collect::<Vec<f64>>();
+            (
+                f(&img.value().unwrap()),
+                f(g.get(p).unwrap()),
+                f(g.get(c).unwrap()),
+            )
+        })
+    }
+
+    /// Largest difference relative to the largest magnitude of `b`.
+    fn rel_max(a: &[f64], b: &[f64]) -> f64 {
+        let scale = b.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        a.iter()
+            .zip(b)
+            .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
+            / scale
+    }
+
+    /// `sqrt(sum (a - b)^2 / sum b^2)`.
+    fn rel_l2(a: &[f64], b: &[f64]) -> f64 {
+        let d: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+        let n: f64 = b.iter().map(|y| y * y).sum();
+        (d / n).sqrt()
+    }
+
+    /// The `f32` fast path against the `f64` evaluation: images within `f32` precision (up to
+    /// pairs at the cut-off, whose coverage is the threshold), gradients within a small
+    /// relative error of the whole gradient.
+    #[test]
+    fn f32_path_matches_f64() {
+        for (subdiv, size, sigma) in [(2, 64, 1e-3), (3, 96, 1e-4), (4, 128, 1e-5)] {
+            let (i32_, gp32, gc32) = render::<f32>(subdiv, size, sigma, 2);
+            let (i64_, gp64, gc64) = render::<f64>(subdiv, size, sigma, 2);
+            let di = i32_
+                .iter()
+                .zip(&i64_)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            let (ep, ec) = (rel_l2(&gp32, &gp64), rel_l2(&gc32, &gc64));
+            let (mp, mc) = (rel_max(&gp32, &gp64), rel_max(&gc32, &gc64));
+            eprintln!("subdiv {subdiv} size {size} sigma {sigma}: image {di:.2e}, grad pos l2 {ep:.2e} max {mp:.2e}, col l2 {ec:.2e} max {mc:.2e}");
+            assert!(di < 1e-4, "image {di}");
+            assert!(ep < 2e-4 && mp < 5e-4, "positions {ep} {mp}");
+            assert!(ec < 1e-5 && mc < 2e-5, "colours {ec} {mc}");
+        }
+    }
+
+    /// The fast path gives the same bits for 1, 2 and 3 threads, and from its AVX2 and
+    /// portable builds.
+    #[test]
+    fn f32_path_deterministic() {
+        let a = render::<f32>(3, 80, 1e-4, 1);
+        for threads in [2, 3] {
+            let b = render::<f32>(3, 80, 1e-4, threads);
+            assert!(a == b, "{threads} threads differ");
+        }
+        set_force_portable(true);
+        let b = render::<f32>(3, 80, 1e-4, 2);
+        set_force_portable(false);
+        assert!(a == b, "portable build differs");
+    }
+}
