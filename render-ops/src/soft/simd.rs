@@ -31,7 +31,7 @@ macro_rules! lanewise {
             type Output = F8;
             #[inline(always)]
             fn $f(self, o: F8) -> F8 {
-                F8(std::array::from_fn(|i| self.0[i] $op o.0[i]))
+                F8(lanes(|i| self.0[i] $op o.0[i]))
             }
         }
     };
@@ -53,7 +53,7 @@ impl BitAnd for M8 {
     type Output = M8;
     #[inline(always)]
     fn bitand(self, o: M8) -> M8 {
-        M8(std::array::from_fn(|i| self.0[i] & o.0[i]))
+        M8(lanes(|i| self.0[i] & o.0[i]))
     }
 }
 
@@ -61,7 +61,7 @@ impl BitOr for M8 {
     type Output = M8;
     #[inline(always)]
     fn bitor(self, o: M8) -> M8 {
-        M8(std::array::from_fn(|i| self.0[i] | o.0[i]))
+        M8(lanes(|i| self.0[i] | o.0[i]))
     }
 }
 
@@ -71,6 +71,23 @@ impl Not for M8 {
     fn not(self) -> M8 {
         M8(self.0.map(|x| !x))
     }
+}
+
+/// `[f(0), .., f(7)]`, as a plain loop that is always inlined (`std::array::from_fn` may be
+/// left out of line, and then it runs without the caller's target features).
+#[inline(always)]
+pub(crate) fn lanes<T: Copy + Default, F: FnMut(usize) -> T>(mut f: F) -> [T; LANES] {
+    let mut o = [T::default(); LANES];
+    for (i, v) in o.iter_mut().enumerate() {
+        *v = f(i);
+    }
+    o
+}
+
+/// `[f(0), f(1), f(2)]`, always inlined (see [`lanes`]).
+#[inline(always)]
+pub(crate) fn arr3<T: Copy + Default, F: FnMut(usize) -> T>(mut f: F) -> [T; 3] {
+    [f(0), f(1), f(2)]
 }
 
 #[inline(always)]
@@ -99,7 +116,7 @@ impl M8 {
 /// `a` where `m` is set, else `b`.
 #[inline(always)]
 pub(crate) fn select(m: M8, a: F8, b: F8) -> F8 {
-    F8(std::array::from_fn(|i| {
+    F8(lanes(|i| {
         f32::from_bits((m.0[i] & a.0[i].to_bits()) | (!m.0[i] & b.0[i].to_bits()))
     }))
 }
@@ -125,7 +142,7 @@ impl F8 {
     /// `min(self, o)` per lane (`o` where either is NaN).
     #[inline(always)]
     pub fn min(self, o: F8) -> F8 {
-        F8(std::array::from_fn(|i| {
+        F8(lanes(|i| {
             if self.0[i] < o.0[i] {
                 self.0[i]
             } else {
@@ -137,7 +154,7 @@ impl F8 {
     /// `max(self, o)` per lane (`o` where either is NaN).
     #[inline(always)]
     pub fn max(self, o: F8) -> F8 {
-        F8(std::array::from_fn(|i| {
+        F8(lanes(|i| {
             if self.0[i] > o.0[i] {
                 self.0[i]
             } else {
@@ -153,22 +170,22 @@ impl F8 {
 
     #[inline(always)]
     pub fn lt(self, o: F8) -> M8 {
-        M8(std::array::from_fn(|i| mask(self.0[i] < o.0[i])))
+        M8(lanes(|i| mask(self.0[i] < o.0[i])))
     }
 
     #[inline(always)]
     pub fn le(self, o: F8) -> M8 {
-        M8(std::array::from_fn(|i| mask(self.0[i] <= o.0[i])))
+        M8(lanes(|i| mask(self.0[i] <= o.0[i])))
     }
 
     #[inline(always)]
     pub fn gt(self, o: F8) -> M8 {
-        M8(std::array::from_fn(|i| mask(self.0[i] > o.0[i])))
+        M8(lanes(|i| mask(self.0[i] > o.0[i])))
     }
 
     #[inline(always)]
     pub fn ge(self, o: F8) -> M8 {
-        M8(std::array::from_fn(|i| mask(self.0[i] >= o.0[i])))
+        M8(lanes(|i| mask(self.0[i] >= o.0[i])))
     }
 
     /// The lanes summed in `f64`, lane 0 first (a fixed order: deterministic).
@@ -193,7 +210,7 @@ pub(crate) const EXP_MIN: f32 = -87.0;
 /// `autodiff`'s vectorised `exp`), within 2 ulp of the exact value (tested).
 #[inline(always)]
 pub(crate) fn exp8(x: F8) -> F8 {
-    F8(std::array::from_fn(|i| {
+    F8(lanes(|i| {
         let x = x.0[i];
         let x = if x > EXP_MIN { x } else { EXP_MIN };
         let x = if x < 88.0 { x } else { 88.0 };

@@ -26,7 +26,7 @@
 
 use super::{Prep, SoftRasOp, PIX_STATS};
 use crate::soft::common::{FaceGeom, TILE};
-use crate::soft::simd::{exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
+use crate::soft::simd::{arr3, exp8, lanes, select, use_avx2, EXP_MIN, F8, LANES, M8};
 
 /// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
 pub(super) const FAST_MAX_C: usize = 4;
@@ -55,7 +55,7 @@ impl Geom32 {
     fn new(g: &FaceGeom) -> Self {
         let o = g.v[0];
         let v = g.v.map(|q| [(q[0] - o[0]) as f32, (q[1] - o[1]) as f32]);
-        let e = std::array::from_fn(|k| {
+        let e = arr3(|k| {
             let (a, b) = (g.v[k], g.v[(k + 1) % 3]);
             [(b[0] - a[0]) as f32, (b[1] - a[1]) as f32]
         });
@@ -111,11 +111,10 @@ struct Pair8 {
 fn pair8(g: &Geom32, qx: F8, qy: f32, valid: M8, k: &K) -> Option<Pair8> {
     let zero = F8::splat(0.0);
     let one = F8::splat(1.0);
-    let w: [F8; 3] = std::array::from_fn(|i| {
-        F8::splat(g.bw[i][0]) + F8::splat(g.bw[i][1]) * qx + F8::splat(g.bw[i][2] * qy)
-    });
+    let w: [F8; 3] =
+        arr3(|i| F8::splat(g.bw[i][0]) + F8::splat(g.bw[i][1]) * qx + F8::splat(g.bw[i][2] * qy));
     let inside = w[0].ge(zero) & w[1].ge(zero) & w[2].ge(zero);
-    let da: [F8; 3] = std::array::from_fn(|i| w[i] * F8::splat(g.alt[i]));
+    let da: [F8; 3] = arr3(|i| w[i] * F8::splat(g.alt[i]));
     let din = da[0].min(da[1]).min(da[2]);
     let dob = (-da[0]).max(-da[1]).max(-da[2]);
     let cut2 = F8::splat(k.cut2);
@@ -209,7 +208,7 @@ fn sigmoid8(p: &Pair8) -> (F8, F8) {
 /// Lanes `a..=b` of the chunk starting at column `cs`.
 #[inline(always)]
 fn lanes_in(cs: usize, a: usize, b: usize) -> M8 {
-    M8(std::array::from_fn(|l| {
+    M8(lanes(|l| {
         let c = cs + l;
         if a <= c && c <= b {
             u32::MAX
@@ -638,7 +637,7 @@ impl SoftRasOp {
                 }
                 // Clip-and-renormalise, then raw barycentrics w_k = n_k / sum n.
                 let dot = gwn[0] * q.wn[0] + gwn[1] * q.wn[1] + gwn[2] * q.wn[2];
-                let gw: [F8; 3] = std::array::from_fn(|kk| {
+                let gw: [F8; 3] = arr3(|kk| {
                     let open = q.w[kk].gt(zero) & q.w[kk].lt(one);
                     select(open, (gwn[kk] - dot) * q.inv_sumwc, zero)
                 });
