@@ -6,9 +6,9 @@
 //! interpolation (`perspective_correct` off); `f64` tapes (gradient checking) and the other
 //! settings keep the scalar `f64` evaluation.
 //!
-//! Lanes are 8 consecutive columns of one image row, aligned to multiples of 8 (a tile row is
-//! two such chunks). Per face the geometry is taken relative to its first vertex (pixel
-//! offsets are formed in `f64` and rounded once), so no coordinate loses more than an `f32`
+//! Lanes are 8 consecutive columns of one image row, from the first column of a row span on
+//! (the lanes past the span are masked). Per face the geometry is taken relative to its first
+//! vertex (pixel offsets are formed in `f64` and rounded once), so no coordinate loses more than an `f32`
 //! rounding. Depth enters the blend through `u = (z - near) / (far - near) = 1 - zn`, whose
 //! per-pixel minimum `u_min = 1 - m` is accumulated instead of `m`: `(zn_f - m) / gamma =
 //! (u_min - u_f) / gamma` then has an absolute error of a few `f32` roundings of `u` (about
@@ -26,13 +26,17 @@
 
 use super::{Prep, SoftRasOp, PIX_STATS};
 use crate::soft::common::{FaceGeom, TILE};
-use crate::soft::simd::{arr3, exp8, lanes, select, use_avx2, EXP_MIN, F8, LANES, M8};
+use crate::soft::simd::{arr3, exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
 
 /// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
 pub(super) const FAST_MAX_C: usize = 4;
 
 /// Tile pixels.
 const TP: usize = TILE * TILE;
+/// Per-pixel scratch arrays of a tile hold [`LANES`] more values: a chunk starts at the first
+/// column of a row span, and its lanes past the span (masked, adding neutral values) may run
+/// into the next row or, on the last row, into this padding.
+const TPP: usize = TP + LANES;
 
 /// One face's screen geometry in `f32`, relative to its first vertex `o`.
 #[derive(Clone, Copy)]
@@ -205,17 +209,33 @@ fn sigmoid8(p: &Pair8) -> (F8, F8) {
     (select(p.keep, dd, F8::splat(0.0)), select(p.keep, omd, one))
 }
 
-/// Lanes `a..=b` of the chunk starting at column `cs`.
+/// Eight set lanes, then eight clear: `HEAD[8 - n..16 - n]` sets the first `n` lanes.
+static HEAD: [u32; 2 * LANES] = [
+    u32::MAX,
+    u32::MAX,
+    u32::MAX,
+    u32::MAX,
+    u32::MAX,
+    u32::MAX,
+    u32::MAX,
+    u32::MAX,
+    0,
+    0,
+    0,
+    0,
+    0,
+    0,
+    0,
+    0,
+];
+
+/// Lanes `0..=b - cs` of the chunk starting at column `cs <= b` (the columns up to `b`).
 #[inline(always)]
-fn lanes_in(cs: usize, a: usize, b: usize) -> M8 {
-    M8(lanes(|l| {
-        let c = cs + l;
-        if a <= c && c <= b {
-            u32::MAX
-        } else {
-            0
-        }
-    }))
+fn lanes_to(cs: usize, b: usize) -> M8 {
+    let n = (b + 1 - cs).min(LANES);
+    M8(HEAD[LANES - n..2 * LANES - n]
+        .try_into()
+        .expect("eight lanes"))
 }
 
 /// Pixel offsets `px[cs + l] - o_x` in `f64`, rounded to `f32` once.
@@ -239,12 +259,12 @@ struct Chunk {
 pub(super) struct Scratch32 {
     chunks: Vec<Chunk>,
     runs: Vec<usize>,
-    count: [f32; TP],
-    umin: [f32; TP],
-    prod: [f32; TP],
-    zsum: [f32; TP],
-    lsum: [f64; TP],
-    /// Attribute sums, channel-planar (`ch * TP + lp`).
+    count: [f32; TPP],
+    umin: [f32; TPP],
+    prod: [f32; TPP],
+    zsum: [f32; TPP],
+    lsum: [f64; TPP],
+    /// Attribute sums, channel-planar (`ch * TPP + lp`).
     col: Vec<f32>,
 }
 
@@ -253,12 +273,12 @@ impl Scratch32 {
         Self {
             chunks: Vec::new(),
             runs: Vec::new(),
-            count: [0.0; TP],
-            umin: [0.0; TP],
-            prod: [0.0; TP],
-            zsum: [0.0; TP],
-            lsum: [0.0; TP],
-            col: vec![0.0; c * TP],
+            count: [0.0; TPP],
+            umin: [0.0; TPP],
+            prod: [0.0; TPP],
+            zsum: [0.0; TPP],
+            lsum: [0.0; TPP],
+            col: vec![0.0; c * TPP],
         }
     }
 }
@@ -362,9 +382,9 @@ impl SoftRasOp {
                     continue;
                 };
                 let qy = (py - g.o[1]) as f32;
-                let mut cs = c_base + (a - c_base) / LANES * LANES;
+                let mut cs = a;
                 while cs <= b {
-                    let valid = lanes_in(cs, a, b);
+                    let valid = lanes_to(cs, b);
                     if let Some(p) = pair8(&g, offsets(pxp, cs, g.o[0]), qy, valid, &k) {
                         let (dd, omd) = sigmoid8(&p);
                         let lp = (row - r_base) * TILE + cs - c_base;
@@ -393,7 +413,7 @@ impl SoftRasOp {
             sc.zsum[lp] = eb as f32;
             sc.lsum[lp] = 0.0;
             for ch in 0..c {
-                sc.col[ch * TP + lp] = (eb * s.background.get(ch).copied().unwrap_or(0.0)) as f32;
+                sc.col[ch * TPP + lp] = (eb * s.background.get(ch).copied().unwrap_or(0.0)) as f32;
             }
         }
         // Pass 2: the blend (eq. (6)), e_f = exp((u_min - u_f) / gamma).
@@ -414,11 +434,14 @@ impl SoftRasOp {
                 let tt = (F8::load(&sc.umin[lp..]) - ck.u) * inv_gamma;
                 let ef = select(tt.lt(F8::splat(EXP_MIN)), F8::splat(0.0), exp8(tt));
                 let we = ck.dd * ef;
-                (F8::load(&sc.zsum[lp..]) + we).store(&mut sc.zsum[lp..]);
-                for ch in 0..c {
-                    let a = ck.wn[0] * fa[0][ch] + ck.wn[1] * fa[1][ch] + ck.wn[2] * fa[2][ch];
-                    let o = ch * TP + lp;
-                    (F8::load(&sc.col[o..]) + we * a).store(&mut sc.col[o..]);
+                // Occluded faces (every e_f 0) add exact zeros: skipped.
+                if we.gt(F8::splat(0.0)).any() {
+                    (F8::load(&sc.zsum[lp..]) + we).store(&mut sc.zsum[lp..]);
+                    for ch in 0..c {
+                        let a = ck.wn[0] * fa[0][ch] + ck.wn[1] * fa[1][ch] + ck.wn[2] * fa[2][ch];
+                        let o = ch * TPP + lp;
+                        (F8::load(&sc.col[o..]) + we * a).store(&mut sc.col[o..]);
+                    }
                 }
                 // Faint coverage (P >= 1/2): sum log1p(-D) in f64 for the silhouette.
                 let faint = F8::load(&sc.prod[lp..]).ge(F8::splat(0.5)) & ck.dd.gt(F8::splat(0.0));
@@ -438,7 +461,7 @@ impl SoftRasOp {
                 out.push(0.0);
             } else {
                 let z = sc.zsum[lp] as f64;
-                out.extend((0..c).map(|ch| sc.col[ch * TP + lp] as f64 / z));
+                out.extend((0..c).map(|ch| sc.col[ch * TPP + lp] as f64 / z));
                 let p = sc.prod[lp] as f64;
                 out.push(if p < 0.5 {
                     1.0 - p
@@ -457,7 +480,8 @@ impl SoftRasOp {
 
 /// The backward's per-pixel values for the `f32` path, planar (`plane * n + pixel`, `n` the
 /// pixel count plus [`LANES`] of padding): the `C` attribute gradients `g`, then `g_alpha P`,
-/// `g . I`, `1 / Z` and `u_min = 1 - m` (`-inf` where `g` is 0: the pixel is skipped).
+/// `g . I`, `1 / Z` and `u_min = 1 - m` (`-inf` where `g` is 0 or no face reaches the pixel:
+/// it is skipped, and its other values are 0).
 pub(super) struct Planes {
     pub v: Vec<f32>,
     pub n: usize,
@@ -472,7 +496,8 @@ impl Planes {
         let mut v = vec![0.0f32; (c + 4) * n];
         v[(c + 3) * n..].fill(f32::NEG_INFINITY);
         for (pi, (g, st)) in go.chunks(c + 1).zip(prep.pix.chunks(pstride)).enumerate() {
-            if g.iter().all(|&x| x == 0.0) {
+            // Pixels no face reaches (empty tiles leave Z = 0) have no pairs: skipped too.
+            if g.iter().all(|&x| x == 0.0) || !(st[1] > 0.0) {
                 continue;
             }
             for ch in 0..c {
@@ -577,11 +602,11 @@ impl SoftRasOp {
             let mut vgdep = [zero; 3];
             let mut vgattr = [[zero; FAST_MAX_C]; 3];
             let mut any = false;
-            let mut cs = a / LANES * LANES;
+            let mut cs = a;
             while cs <= b {
                 let pi = row * s.width + cs;
                 let um = plane(c + 3, pi);
-                let valid = lanes_in(cs, a, b) & um.gt(F8::splat(f32::NEG_INFINITY));
+                let valid = lanes_to(cs, b) & um.gt(F8::splat(f32::NEG_INFINITY));
                 let col = cs;
                 cs += LANES;
                 if !valid.any() {
@@ -595,19 +620,28 @@ impl SoftRasOp {
                 let (dd, omd) = sigmoid8(&q);
                 let tt = (um - q.u) * inv_gamma;
                 let ef = select(tt.lt(F8::splat(EXP_MIN)) | !q.keep, zero, exp8(tt));
-                let (ga_prod, g_img, inv_z) = (plane(c, pi), plane(c + 1, pi), plane(c + 2, pi));
+                let ga_prod = plane(c, pi);
+                // Where every lane's depth weight is 0 (occluded faces: e_f below e^-87) the
+                // blend terms vanish exactly; only the silhouette term remains.
+                let blend = (ef.gt(zero) & q.keep).any();
                 let mut gch = [zero; FAST_MAX_C];
-                // g . (a_f - I).
-                let mut cdiff = -g_img;
-                for ch in 0..c {
-                    gch[ch] = plane(ch, pi);
-                    let af = q.wn[0] * fa[0][ch] + q.wn[1] * fa[1][ch] + q.wn[2] * fa[2][ch];
-                    cdiff = cdiff + gch[ch] * af;
+                let (mut gx, mut gscale, mut g_zn) =
+                    (select(q.keep, ga_prod * dd, zero), zero, zero);
+                if blend {
+                    let (g_img, inv_z) = (plane(c + 1, pi), plane(c + 2, pi));
+                    // g . (a_f - I).
+                    let mut cdiff = -g_img;
+                    for ch in 0..c {
+                        gch[ch] = plane(ch, pi);
+                        let af = q.wn[0] * fa[0][ch] + q.wn[1] * fa[1][ch] + q.wn[2] * fa[2][ch];
+                        cdiff = cdiff + gch[ch] * af;
+                    }
+                    // (Masked lanes may read other pixels' values: zeroed by selects.)
+                    let gblend = select(q.keep, ef * cdiff * inv_z, zero);
+                    gscale = select(q.keep, dd * ef * inv_z, zero);
+                    gx = select(q.keep, gblend * dd * omd + ga_prod * dd, zero);
+                    g_zn = dd * gblend * inv_gamma;
                 }
-                let gblend = ef * cdiff * inv_z;
-                let gscale = dd * ef * inv_z;
-                let gx = select(q.keep, gblend * dd * omd + ga_prod * dd, zero);
-                let g_zn = dd * gblend * inv_gamma;
                 // Coverage: d(d2) through the closest boundary point.
                 let sign = select(q.x.ge(zero), one, -one);
                 let gd2 = gx * sign * inv_sigma * F8::splat(-2.0);
@@ -619,6 +653,9 @@ impl SoftRasOp {
                     vgv[e][1] = vgv[e][1] + ci * q.ry[e];
                     vgv[j][0] = vgv[j][0] + cj * q.rx[e];
                     vgv[j][1] = vgv[j][1] + cj * q.ry[e];
+                }
+                if !blend {
+                    continue;
                 }
                 // Depth and attributes.
                 let gz = -(g_zn * zscale);
@@ -783,6 +820,7 @@ mod tests {
             let (ep, ec) = (rel_l2(&gp32, &gp64), rel_l2(&gc32, &gc64));
             let (mp, mc) = (rel_max(&gp32, &gp64), rel_max(&gc32, &gc64));
             eprintln!("subdiv {subdiv} size {size} sigma {sigma}: image {di:.2e}, grad pos l2 {ep:.2e} max {mp:.2e}, col l2 {ec:.2e} max {mc:.2e}");
+            assert!(gp32.iter().chain(&gc32).all(|x| x.is_finite()));
             assert!(di < 1e-4, "image {di}");
             assert!(ep < 2e-4 && mp < 5e-4, "positions {ep} {mp}");
             assert!(ec < 1e-5 && mc < 2e-5, "colours {ec} {mc}");
