@@ -514,7 +514,7 @@ impl Planes {
 
 impl SoftRasOp {
     /// [`SoftRasOp::face_gradient`] in `f32`, 8 pixels at a time: per-face sums in `f32`
-    /// vectors within a row, added to `f64` sums after each row.
+    /// vectors, their lanes added in `f64` at the end.
     pub(super) fn face_gradient32(
         &self,
         prep: &Prep,
@@ -581,10 +581,12 @@ impl SoftRasOp {
         let inv_d = g.inv_d.map(F8::splat);
         let n = pl.n;
         let plane = |i: usize, pi: usize| F8::load(&pl.v[i * n + pi..]);
-        // f64 sums over rows: NDC and view-depth gradients of the vertices, attributes.
-        let mut gv = [[0.0f64; 2]; 3];
-        let mut gdep = [0.0f64; 3];
-        let mut gattr = [[0.0f64; FAST_MAX_C]; 3];
+        // Per-lane sums over the face's pairs: NDC and view-depth gradients of the vertices,
+        // attributes (each term carries an f32 rounding already, so summing in f32 adds an
+        // error of the same order relative to the sum of the terms' magnitudes).
+        let mut vgv = [[zero; 2]; 3];
+        let mut vgdep = [zero; 3];
+        let mut vgattr = [[zero; FAST_MAX_C]; 3];
         let (c0, c1c, r0, r1) = (
             rc[0] as usize,
             rc[1] as usize,
@@ -598,10 +600,6 @@ impl SoftRasOp {
                 continue;
             };
             let qy = (py - g.o[1]) as f32;
-            let mut vgv = [[zero; 2]; 3];
-            let mut vgdep = [zero; 3];
-            let mut vgattr = [[zero; FAST_MAX_C]; 3];
-            let mut any = false;
             let mut cs = a;
             while cs <= b {
                 let pi = row * s.width + cs;
@@ -616,7 +614,6 @@ impl SoftRasOp {
                 let Some(q) = pair8(&g, qx, qy, valid, &k) else {
                     continue;
                 };
-                any = true;
                 let (dd, omd) = sigmoid8(&q);
                 let tt = (um - q.u) * inv_gamma;
                 let ef = select(tt.lt(F8::splat(EXP_MIN)) | !q.keep, zero, exp8(tt));
@@ -691,16 +688,16 @@ impl SoftRasOp {
                     vgv[j][1] = vgv[j][1] + gn * ax;
                 }
             }
-            if !any {
-                continue;
-            }
-            for kk in 0..3 {
-                gv[kk][0] += vgv[kk][0].sum_f64();
-                gv[kk][1] += vgv[kk][1].sum_f64();
-                gdep[kk] += vgdep[kk].sum_f64();
-                for ch in 0..c {
-                    gattr[kk][ch] += vgattr[kk][ch].sum_f64();
-                }
+        }
+        // Lanes summed in f64 in a fixed order.
+        let mut gv = [[0.0f64; 2]; 3];
+        let mut gdep = [0.0f64; 3];
+        let mut gattr = [[0.0f64; FAST_MAX_C]; 3];
+        for kk in 0..3 {
+            gv[kk] = [vgv[kk][0].sum_f64(), vgv[kk][1].sum_f64()];
+            gdep[kk] = vgdep[kk].sum_f64();
+            for ch in 0..c {
+                gattr[kk][ch] = vgattr[kk][ch].sum_f64();
             }
         }
         for kk in 0..3 {
