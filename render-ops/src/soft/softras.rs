@@ -534,8 +534,10 @@ impl<T: Real> Op<T> for SoftRasOp {
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
         let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s);
         let (w, h, c) = (self.s.width, self.s.height, prep.channels);
-        prep.fast =
-            T::as_f32(&[]).is_some() && c <= fast::FAST_MAX_C && !self.s.perspective_correct;
+        prep.fast = T::as_f32(&[]).is_some()
+            && c <= fast::FAST_MAX_C
+            && !self.s.perspective_correct
+            && fast::f32_range_ok(&self.s);
         if prep.fast {
             prep.pxp = fast::padded_px(&prep.bins.px);
         }

@@ -3,8 +3,9 @@
 //! precision ([`crate::soft::simd`]).
 //!
 //! Taken for `f32` tapes with at most [`FAST_MAX_C`] attribute channels and screen-space
-//! interpolation (`perspective_correct` off); `f64` tapes (gradient checking) and the other
-//! settings keep the scalar `f64` evaluation.
+//! interpolation (`perspective_correct` off) whose constants are normal `f32` numbers
+//! ([`f32_range_ok`]); `f64` tapes (gradient checking) and the other settings keep the scalar
+//! `f64` evaluation.
 //!
 //! Lanes are 8 consecutive columns of one image row, from the first column of a row span on
 //! (the lanes past the span are masked). Per face the geometry is taken relative to its first
@@ -292,6 +293,15 @@ fn pixel_m(umin: f32, u0: f32, eps: f64) -> f64 {
     } else {
         1.0 - umin as f64
     }
+}
+
+/// Whether the settings' constants are normal `f32` numbers (`1 / sigma`, `1 / gamma`, the
+/// depth range and its inverse): otherwise the `f64` evaluation runs.
+pub(super) fn f32_range_ok(s: &super::SoftSettings) -> bool {
+    let zs = 1.0 / (s.far - s.near);
+    [1.0 / s.sigma, 1.0 / s.gamma, s.near, s.far, zs, 1.0 - s.eps]
+        .iter()
+        .all(|&v| v == 0.0 || (v.abs() >= f32::MIN_POSITIVE as f64 && v.abs() <= f32::MAX as f64))
 }
 
 /// Column centres `px` padded with 8 more (extrapolated) for whole chunks at the right edge.
@@ -822,6 +832,14 @@ mod tests {
             assert!(ep < 2e-4 && mp < 5e-4, "positions {ep} {mp}");
             assert!(ec < 1e-5 && mc < 2e-5, "colours {ec} {mc}");
         }
+    }
+
+    /// Settings outside `f32`'s range (here `1 / sigma`) take the `f64` evaluation and stay
+    /// finite.
+    #[test]
+    fn out_of_range_settings_take_the_f64_path() {
+        let (img, gp, gc) = render::<f32>(1, 32, 1e-40, 1);
+        assert!(img.iter().chain(&gp).chain(&gc).all(|x| x.is_finite()));
     }
 
     /// The fast path gives the same bits for 1, 2 and 3 threads, and from its AVX2 and
