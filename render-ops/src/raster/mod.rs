@@ -53,6 +53,8 @@
 // conservative branch.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+use rayon::prelude::*;
+
 mod bin;
 mod clip;
 mod edge;
@@ -261,25 +263,29 @@ pub(crate) fn validate_inputs<T: autodiff::Real>(
             max,
         });
     }
+    // In parallel over large blocks; the first offender (in index order) is reported.
     let nv = clip.len();
-    for (f, face) in faces.iter().enumerate() {
-        for &i in face {
-            if i as usize >= nv {
-                return Err(RasterError::FaceIndexOutOfRange {
-                    face: f,
-                    index: i,
-                    num_vertices: nv,
-                });
-            }
-        }
+    let bad_face = faces
+        .par_iter()
+        .with_min_len(1 << 14)
+        .position_first(|f| f.iter().any(|&i| i as usize >= nv));
+    if let Some(f) = bad_face {
+        let index = *faces[f].iter().find(|&&i| i as usize >= nv).expect("found");
+        return Err(RasterError::FaceIndexOutOfRange {
+            face: f,
+            index,
+            num_vertices: nv,
+        });
     }
-    for (v, c) in clip.iter().enumerate() {
-        if !c.iter().all(|x| x.is_finite()) {
-            return Err(RasterError::NonFiniteVertex {
-                vertex: v,
-                coords: c.map(|x| x.to_f64c()),
-            });
-        }
+    let bad_vertex = clip
+        .par_iter()
+        .with_min_len(1 << 14)
+        .position_first(|c| !c.iter().all(|x| x.is_finite()));
+    if let Some(v) = bad_vertex {
+        return Err(RasterError::NonFiniteVertex {
+            vertex: v,
+            coords: clip[v].map(|x| x.to_f64c()),
+        });
     }
     Ok(())
 }
