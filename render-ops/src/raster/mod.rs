@@ -38,7 +38,11 @@
 //!   finds where every tile row starts in the packed pixel-order output (prefix sums) and,
 //!   in parallel over tiles (whose face records are a small working set), computes each
 //!   fragment's barycentrics, depths and derivatives straight into the output arrays
-//!   (allocated uninitialised and written once). Bins list faces in increasing index order
+//!   (allocated uninitialised and written once), per run of consecutive fragments of one
+//!   face in a tile row (the record, the row part of its edge functions and its per-face
+//!   constants taken once per run; each fragment's values are the same expressions as
+//!   computed alone). Input validation (face indices, finite vertices) runs in parallel and
+//!   reports the first offender in index order. Bins list faces in increasing index order
 //!   and depth ties go to the lower face index, so the result is bit-identical for any number
 //!   of threads.
 //! * **Degenerate input.** Fragments whose `f64` `sum(e)` is not positive (slivers at the limit
