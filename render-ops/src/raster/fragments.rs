@@ -176,12 +176,10 @@ impl<T: Real> Fragments<T> {
         if self.offsets[0] != 0 || *self.offsets.last().unwrap() as usize != n {
             return bad(format!("offsets must run from 0 to {n}"));
         }
-        if let Some(p) = self
-            .offsets
-            .par_windows(2)
-            .with_min_len(1 << 14)
-            .position_first(|w| w[1] < w[0] || (w[1] - w[0]) as usize > self.k)
-        {
+        let o = &self.offsets;
+        if let Some(p) = super::par_first_index(o.len() - 1, |p| {
+            o[p + 1] < o[p] || (o[p + 1] - o[p]) as usize > self.k
+        }) {
             return bad(format!("pixel {p} has a bad fragment range"));
         }
         for (what, len) in [
@@ -355,16 +353,20 @@ unsafe fn write_run<T: Real>(
     let st: &Setup = &rec.st;
     // Per run: the row part of the edge functions and the per-face constants.
     let t = st.row(row);
-    let (sa, sb) = (st.a[0] + st.a[1] + st.a[2], st.b[0] + st.b[1] + st.b[2]);
-    let sw = [
-        st.w[0] * st.inv_det,
-        st.w[1] * st.inv_det,
-        st.w[2] * st.inv_det,
-    ];
-    let (ax, by) = (
-        [st.a[0] * sw[0], st.a[1] * sw[1], st.a[2] * sw[2]],
-        [st.b[0] * sw[0], st.b[1] * sw[1], st.b[2] * sw[2]],
-    );
+    // Only the constants of the mode in use (runs are short for small faces).
+    let (mut sa, mut sb) = (0.0, 0.0);
+    let (mut sw, mut ax, mut by) = ([0.0; 3], [0.0; 3], [0.0; 3]);
+    if persp {
+        (sa, sb) = (st.a[0] + st.a[1] + st.a[2], st.b[0] + st.b[1] + st.b[2]);
+    } else {
+        sw = [
+            st.w[0] * st.inv_det,
+            st.w[1] * st.inv_det,
+            st.w[2] * st.inv_det,
+        ];
+        ax = [st.a[0] * sw[0], st.a[1] * sw[1], st.a[2] * sw[2]];
+        by = [st.b[0] * sw[0], st.b[1] * sw[1], st.b[2] * sw[2]];
+    }
     let m = T::max_value().to_f64c();
     for (j, (&col, &d)) in cols.iter().zip(depth).enumerate() {
         let e = st.eval(col, &t);

@@ -8,7 +8,7 @@ use super::bin::{bin_faces, Bins};
 use super::clip::{ceil_u, floor_u, to_screen, Rect};
 use super::edge::Setup;
 use super::fragments::{assemble, Fragments, TileFrags};
-use super::{validate_inputs, RasterError, RasterSettings, TILE_SIZE};
+use super::{par_first_index, validate_inputs, RasterError, RasterSettings, TILE_SIZE};
 use crate::scatter::scatter_by_vertex;
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
@@ -290,12 +290,7 @@ pub fn rasterize_backward<T: Real>(
     }
     frags.validate()?;
     let n = frags.len();
-    if let Some(i) = frags
-        .face
-        .par_iter()
-        .with_min_len(1 << 14)
-        .position_first(|&f| f as usize >= faces.len())
-    {
+    if let Some(i) = par_first_index(n, |i| frags.face[i] as usize >= faces.len()) {
         return Err(RasterError::FragmentsMismatch(format!(
             "fragment {i} has face {} but there are {} faces",
             frags.face[i],

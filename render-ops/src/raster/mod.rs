@@ -253,6 +253,15 @@ pub enum RasterError {
     FragmentsMismatch(String),
 }
 
+/// The first `i < n` (in index order) with `bad(i)`: blocks of indices are scanned in
+/// parallel, each with a plain loop, and the first block that has one wins.
+pub(crate) fn par_first_index(n: usize, bad: impl Fn(usize) -> bool + Sync) -> Option<usize> {
+    const BLOCK: usize = 1 << 14;
+    (0..n.div_ceil(BLOCK))
+        .into_par_iter()
+        .find_map_first(|b| (b * BLOCK..((b + 1) * BLOCK).min(n)).find(|&i| bad(i)))
+}
+
 /// Checks settings, face indices and vertex finiteness.
 pub(crate) fn validate_inputs<T: autodiff::Real>(
     clip: &[[T; 4]],
@@ -269,10 +278,7 @@ pub(crate) fn validate_inputs<T: autodiff::Real>(
     }
     // In parallel over large blocks; the first offender (in index order) is reported.
     let nv = clip.len();
-    let bad_face = faces
-        .par_iter()
-        .with_min_len(1 << 14)
-        .position_first(|f| f.iter().any(|&i| i as usize >= nv));
+    let bad_face = par_first_index(faces.len(), |f| faces[f].iter().any(|&i| i as usize >= nv));
     if let Some(f) = bad_face {
         let index = *faces[f].iter().find(|&&i| i as usize >= nv).expect("found");
         return Err(RasterError::FaceIndexOutOfRange {
@@ -281,10 +287,7 @@ pub(crate) fn validate_inputs<T: autodiff::Real>(
             num_vertices: nv,
         });
     }
-    let bad_vertex = clip
-        .par_iter()
-        .with_min_len(1 << 14)
-        .position_first(|c| !c.iter().all(|x| x.is_finite()));
+    let bad_vertex = par_first_index(clip.len(), |v| !clip[v].iter().all(|x| x.is_finite()));
     if let Some(v) = bad_vertex {
         return Err(RasterError::NonFiniteVertex {
             vertex: v,
