@@ -2,6 +2,7 @@
 //! of face f_n with barycentrics b_n. Gradients flow to the attributes (scatter-added in
 //! fragment order, deterministic) and to the barycentrics (hence to positions).
 
+use std::mem::MaybeUninit;
 use std::sync::Arc;
 
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
@@ -39,12 +40,15 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
         let c = attr.shape()[1];
         let a = attr.as_slice().expect("standard");
         let b = bary.as_slice().expect("standard");
-        let mut out = vec![T::zero(); n * c];
+        let mut out = Vec::with_capacity(n * c);
+        let o = &mut out.spare_capacity_mut()[..n * c];
         match c {
-            3 => interpolate_rows::<T, 3>(&self.fragments.face, &self.faces, a, b, c, &mut out),
-            1 => interpolate_rows::<T, 1>(&self.fragments.face, &self.faces, a, b, c, &mut out),
-            _ => interpolate_rows::<T, 0>(&self.fragments.face, &self.faces, a, b, c, &mut out),
+            3 => interpolate_rows::<T, 3>(&self.fragments.face, &self.faces, a, b, c, o),
+            1 => interpolate_rows::<T, 1>(&self.fragments.face, &self.faces, a, b, c, o),
+            _ => interpolate_rows::<T, 0>(&self.fragments.face, &self.faces, a, b, c, o),
         }
+        // SAFETY: `interpolate_rows` wrote all `n * c` values.
+        unsafe { out.set_len(n * c) };
         Ok(vec![
             ArrayD::from_shape_vec(IxDyn(&[n, c]), out).expect("n x c")
         ])
@@ -101,15 +105,15 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
     }
 }
 
-/// Interpolation of `C` channels (`C = 0`: `c`, known only at run time) into `out` ([N, C]),
-/// in parallel over blocks of fragments.
+/// Interpolation of `C` channels (`C = 0`: `c`, known only at run time) into `out` ([N, C],
+/// uninitialised, every value written), in parallel over blocks of fragments.
 fn interpolate_rows<T: Real, const C: usize>(
     frag_face: &[u32],
     faces: &[[u32; 3]],
     a: &[T],
     b: &[T],
     c: usize,
-    out: &mut [T],
+    out: &mut [MaybeUninit<T>],
 ) {
     let c = if C > 0 { C } else { c };
     out.par_chunks_mut(ROWS_PER_TASK * c.max(1))
@@ -127,7 +131,7 @@ fn interpolate_rows<T: Real, const C: usize>(
                 let a1 = &a[f[1] as usize * c..][..c];
                 let a2 = &a[f[2] as usize * c..][..c];
                 for (((o, &x0), &x1), &x2) in orow.iter_mut().zip(a0).zip(a1).zip(a2) {
-                    *o = bi[0] * x0 + bi[1] * x1 + bi[2] * x2;
+                    o.write(bi[0] * x0 + bi[1] * x1 + bi[2] * x2);
                 }
             }
         });
@@ -141,9 +145,9 @@ pub fn interpolate<'t, T: Real>(
     let shape = attributes.shape();
     let nv = r
         .faces
-        .iter()
-        .flatten()
-        .map(|&i| i as usize + 1)
+        .par_iter()
+        .with_min_len(1 << 14)
+        .map(|f| f[0].max(f[1]).max(f[2]) as usize + 1)
         .max()
         .unwrap_or(0);
     if shape.len() != 2 || shape[0] < nv {

@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
+use rayon::prelude::*;
 
 use crate::error::RenderError;
 use crate::raster::{rasterize_backward, Fragments, RasterSettings};
@@ -60,10 +61,14 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
     fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
         let f = &self.fragments;
         let n = f.face.len();
-        let bary =
-            ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.as_flattened().to_vec()).expect("n x 3");
-        let depth = ArrayD::from_shape_vec(IxDyn(&[n]), f.depth.clone()).expect("n");
-        let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), f.view_depth.clone()).expect("n");
+        // The three copies in one parallel region (they are the op's only work).
+        let (bary, (depth, vdepth)) = rayon::join(
+            || par_copy(f.bary.as_flattened()),
+            || rayon::join(|| par_copy(&f.depth), || par_copy(&f.view_depth)),
+        );
+        let bary = ArrayD::from_shape_vec(IxDyn(&[n, 3]), bary).expect("n x 3");
+        let depth = ArrayD::from_shape_vec(IxDyn(&[n]), depth).expect("n");
+        let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), vdepth).expect("n");
         Ok(vec![bary, depth, vdepth])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
@@ -100,6 +105,23 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
                 .expect("v x 4"),
         )])
     }
+}
+
+/// `s.to_vec()`, in parallel over large blocks (written once into uninitialised memory).
+pub(crate) fn par_copy<T: Copy + Send + Sync>(s: &[T]) -> Vec<T> {
+    const BLOCK: usize = 1 << 15;
+    let mut v = Vec::with_capacity(s.len());
+    v.spare_capacity_mut()[..s.len()]
+        .par_chunks_mut(BLOCK)
+        .zip(s.par_chunks(BLOCK))
+        .for_each(|(d, s)| {
+            for (d, &x) in d.iter_mut().zip(s) {
+                d.write(x);
+            }
+        });
+    // SAFETY: every one of the first `s.len()` elements was written above.
+    unsafe { v.set_len(s.len()) };
+    v
 }
 
 /// Views a flat slice of length 3N as N triples.

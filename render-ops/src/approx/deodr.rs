@@ -538,17 +538,23 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         let c = self.background.len();
         let w = self.settings.width;
         let attrs: Vec<f64> = inputs[1].iter().map(|x| x.to_f64c()).collect();
-        let mut img = hard.clone();
+        // The copy in parallel (`hard` is kept for the backward).
+        let mut img = ArrayD::from_shape_vec(
+            hard.raw_dim(),
+            crate::rasterize::par_copy(hard.as_slice().expect("standard")),
+        )
+        .expect("same shape");
         // Only rows that some ramp reaches change, in f64.
         img.as_slice_mut()
             .expect("standard")
             .par_chunks_mut(w * (c + 1))
             .enumerate()
             .filter(|(row, _)| !self.edges.row(*row).is_empty())
-            .for_each(|(row, out)| {
-                let mut v: Vec<f64> = out.iter().map(|x| x.to_f64c()).collect();
-                self.overdraw_row(&attrs, row, &mut v, |_, _| {});
-                for (o, x) in out.iter_mut().zip(v) {
+            .for_each_init(Vec::new, |v, (row, out)| {
+                v.clear();
+                v.extend(out.iter().map(|x| x.to_f64c()));
+                self.overdraw_row(&attrs, row, v, |_, _| {});
+                for (o, &x) in out.iter_mut().zip(v.iter()) {
                     *o = T::from_f64c(x);
                 }
             });
@@ -564,7 +570,12 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         let attrs: Vec<f64> = ctx.inputs[1].iter().map(|x| x.to_f64c()).collect();
         // dL/dI, replayed through each row's overdraw layers (in f64) to dL/dI_hard; rows no
         // ramp reaches pass through unchanged.
-        let mut g = ctx.grad_outputs[0].as_standard_layout().into_owned();
+        let g_in = ctx.grad_outputs[0].as_standard_layout();
+        let mut g = ArrayD::from_shape_vec(
+            g_in.raw_dim(),
+            crate::rasterize::par_copy(g_in.as_slice().expect("standard")),
+        )
+        .expect("same shape");
         let g_hard = g.as_slice_mut().expect("standard");
         let rw = w * (c + 1);
         let contrib: Vec<RowGrad> = match &self.hard {
@@ -575,18 +586,20 @@ impl<T: Real> Op<T> for DeodrOp<T> {
                     .par_chunks_mut(rw)
                     .enumerate()
                     .filter(|(row, _)| !self.edges.row(*row).is_empty())
-                    .map(|(row, grow)| {
-                        let h: Vec<f64> = hard[row * rw..(row + 1) * rw]
-                            .iter()
-                            .map(|x| x.to_f64c())
-                            .collect();
-                        let mut g64: Vec<f64> = grow.iter().map(|x| x.to_f64c()).collect();
-                        let out = self.backward_row(&attrs, &h, row, &mut g64);
-                        for (o, x) in grow.iter_mut().zip(g64) {
-                            *o = T::from_f64c(x);
-                        }
-                        out
-                    })
+                    .map_init(
+                        || (Vec::new(), Vec::new()),
+                        |(h, g64), (row, grow)| {
+                            h.clear();
+                            h.extend(hard[row * rw..(row + 1) * rw].iter().map(|x| x.to_f64c()));
+                            g64.clear();
+                            g64.extend(grow.iter().map(|x| x.to_f64c()));
+                            let out = self.backward_row(&attrs, h, row, g64);
+                            for (o, &x) in grow.iter_mut().zip(g64.iter()) {
+                                *o = T::from_f64c(x);
+                            }
+                            out
+                        },
+                    )
                     .collect()
             }
         };

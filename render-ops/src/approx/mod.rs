@@ -49,6 +49,7 @@ pub use nmr::nmr;
 pub use opendr::opendr;
 pub use tf_mesh::tf_mesh;
 
+use std::mem::MaybeUninit;
 use std::sync::Arc;
 
 use autodiff::{AutodiffError, BackwardCtx, Real, Tensor, Var};
@@ -210,23 +211,27 @@ pub(crate) fn render_hard<T: Real>(
     let a = attrs.as_standard_layout();
     let a = a.as_slice().expect("standard");
     let (h, w) = (frags.height, frags.width);
-    let mut img = vec![T::zero(); h * w * (c + 1)];
+    let n = h * w * (c + 1);
+    let mut img = Vec::with_capacity(n);
+    let out = &mut img.spare_capacity_mut()[..n];
     match c {
-        3 => render_hard_rows::<T, 3>(frags, faces, bg, a, &mut img),
-        1 => render_hard_rows::<T, 1>(frags, faces, bg, a, &mut img),
-        _ => render_hard_rows::<T, 0>(frags, faces, bg, a, &mut img),
+        3 => render_hard_rows::<T, 3>(frags, faces, bg, a, out),
+        1 => render_hard_rows::<T, 1>(frags, faces, bg, a, out),
+        _ => render_hard_rows::<T, 0>(frags, faces, bg, a, out),
     }
+    // SAFETY: `render_hard_rows` wrote all `n` values.
+    unsafe { img.set_len(n) };
     Ok(ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c"))
 }
 
 /// The rows of [`render_hard`], for `C` channels (`C = 0`: `bg.len()`, known only at run
-/// time), in parallel over image rows.
+/// time), in parallel over image rows, writing every value of the (uninitialised) image.
 fn render_hard_rows<T: Real, const C: usize>(
     frags: &Fragments<T>,
     faces: &[[u32; 3]],
     bg: &[T],
     a: &[T],
-    img: &mut [T],
+    img: &mut [MaybeUninit<T>],
 ) {
     let c = if C > 0 { C } else { bg.len() };
     let w = frags.width;
@@ -237,7 +242,10 @@ fn render_hard_rows<T: Real, const C: usize>(
             for (x, px) in out.chunks_exact_mut(c + 1).enumerate() {
                 let (i, e) = (offs[x] as usize, offs[x + 1] as usize);
                 if i == e {
-                    px[..c].copy_from_slice(&bg[..c]);
+                    for (o, &v) in px[..c].iter_mut().zip(&bg[..c]) {
+                        o.write(v);
+                    }
+                    px[c].write(T::zero());
                     continue;
                 }
                 let f = faces[frags.face[i] as usize];
@@ -248,9 +256,9 @@ fn render_hard_rows<T: Real, const C: usize>(
                     &a[f[2] as usize * c..][..c],
                 );
                 for ch in 0..c {
-                    px[ch] = b[0] * a0[ch] + b[1] * a1[ch] + b[2] * a2[ch];
+                    px[ch].write(b[0] * a0[ch] + b[1] * a1[ch] + b[2] * a2[ch]);
                 }
-                px[c] = T::one();
+                px[c].write(T::one());
             }
         });
 }

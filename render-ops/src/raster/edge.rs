@@ -277,56 +277,6 @@ impl Setup {
         ]
     }
 
-    /// Output values `(bary, view_depth, dbary_dx, dbary_dy)` of the fragment at pixel
-    /// `(col, row)`, which must have `sum_i e_i > 0` there. Values beyond the range of `T` (only
-    /// for slivers at the limits of `f64`) are saturated, NaN to zero, so they are always finite.
-    #[inline]
-    #[allow(clippy::type_complexity)]
-    pub fn values<T: Real>(&self, col: f64, row: f64, persp: bool) -> ([T; 3], T, [T; 3], [T; 3]) {
-        let e = self.eval(col, &self.row(row));
-        let inv = 1.0 / (e[0] + e[1] + e[2]);
-        let bp = [e[0] * inv, e[1] * inv, e[2] * inv];
-        let vd = bp[0] * self.w[0] + bp[1] * self.w[1] + bp[2] * self.w[2];
-        let mut bary = [0.0; 3];
-        let mut dx = [0.0; 3];
-        let mut dy = [0.0; 3];
-        if persp {
-            // d(e_i / sum e) = (de_i - b_i d(sum e)) / sum e, de_i/dcol = a_i, de_i/drow = b_i.
-            let sa = self.a[0] + self.a[1] + self.a[2];
-            let sb = self.b[0] + self.b[1] + self.b[2];
-            for i in 0..3 {
-                bary[i] = bp[i];
-                dx[i] = (self.a[i] - bp[i] * sa) * inv;
-                dy[i] = (self.b[i] - bp[i] * sb) * inv;
-            }
-        } else {
-            // Screen-space barycentrics lambda_i = e_i w_i / det are affine in the pixel.
-            for i in 0..3 {
-                let s = self.w[i] * self.inv_det;
-                bary[i] = e[i] * s;
-                dx[i] = self.a[i] * s;
-                dy[i] = self.b[i] * s;
-            }
-        }
-        // Every value within T's finite range (false for NaN) converts to a finite value; the
-        // saturating path gives the same values wherever the plain conversion is finite.
-        let m = T::max_value().to_f64c();
-        let mut ok = vd.abs() <= m;
-        for i in 0..3 {
-            ok &= (bary[i].abs() <= m) & (dx[i].abs() <= m) & (dy[i].abs() <= m);
-        }
-        if ok {
-            (
-                bary.map(T::from_f64c),
-                T::from_f64c(vd),
-                dx.map(T::from_f64c),
-                dy.map(T::from_f64c),
-            )
-        } else {
-            (bary.map(sat), sat(vd), dx.map(sat), dy.map(sat))
-        }
-    }
-
     /// Row part `b_i row + c_i` of the edge functions.
     #[inline(always)]
     pub fn row(&self, row: f64) -> [f64; 3] {

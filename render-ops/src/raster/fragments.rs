@@ -5,8 +5,9 @@ use std::ops::Range;
 use autodiff::Real;
 use rayon::prelude::*;
 
-use super::bin::Bins;
+use super::bin::{Bins, FaceRec};
 use super::clip::Rect;
+use super::edge::{sat, Setup};
 use super::{RasterError, RasterSettings, TILE_SIZE};
 
 /// Fragments of a rasterized image, packed: only covered pixels hold fragments.
@@ -175,11 +176,10 @@ impl<T: Real> Fragments<T> {
         if self.offsets[0] != 0 || *self.offsets.last().unwrap() as usize != n {
             return bad(format!("offsets must run from 0 to {n}"));
         }
-        if let Some(p) = self
-            .offsets
-            .windows(2)
-            .position(|w| w[1] < w[0] || (w[1] - w[0]) as usize > self.k)
-        {
+        let o = &self.offsets;
+        if let Some(p) = super::par_first_index(o.len() - 1, |p| {
+            o[p + 1] < o[p] || (o[p + 1] - o[p]) as usize > self.k
+        }) {
             return bad(format!("pixel {p} has a bad fragment range"));
         }
         for (what, len) in [
@@ -322,10 +322,111 @@ impl<T> OutPtrs<T> {
 unsafe impl<T: Send> Sync for OutPtrs<T> {}
 unsafe impl<T: Send> Send for OutPtrs<T> {}
 
+/// Longest run of [`write_run`]: a tile row's pixels.
+const RUN: usize = TILE_SIZE;
+
+/// Computes and writes the values of a run of fragments of one face record (output slots
+/// `pos..pos + cols.len()`, at columns `cols` of row `row`, with NDC depths `depth`):
+/// barycentrics, view depth and barycentric derivatives from the record's edge functions.
+///
+/// With `e_i = a_i col + (b_i row + c_i)` ([`Setup::eval`]), `inv = 1 / sum e`: perspective
+/// correct `b_i = e_i inv`, `d b_i / dcol = (a_i - b_i sum a) inv` (`b` for rows); screen-space
+/// `l_i = e_i w_i / det` with the constant derivatives `a_i w_i / det`, `b_i w_i / det`; view
+/// depth `sum_i (e_i inv) w_i` either way. The row part of `e` and the per-face constants are
+/// computed once per run; every fragment's values are the same expressions as computed per
+/// fragment. Every fragment must have `sum e > 0`. Values beyond the range of `T` (only for
+/// slivers at the limits of `f64`) are saturated, NaN to zero, so they are always finite.
+///
+/// # Safety
+/// `cols.len() == depth.len()`, and the slots `pos..pos + cols.len()` lie below the
+/// output's capacity and are written by no other task.
+#[inline(always)]
+unsafe fn write_run<T: Real>(
+    rec: &FaceRec,
+    cols: &[f64],
+    row: f64,
+    persp: bool,
+    depth: &[f64],
+    out: &OutPtrs<T>,
+    pos: usize,
+) {
+    let st: &Setup = &rec.st;
+    // Per run: the row part of the edge functions and the per-face constants.
+    let t = st.row(row);
+    // Only the constants of the mode in use (runs are short for small faces).
+    let (mut sa, mut sb) = (0.0, 0.0);
+    let (mut sw, mut ax, mut by) = ([0.0; 3], [0.0; 3], [0.0; 3]);
+    if persp {
+        (sa, sb) = (st.a[0] + st.a[1] + st.a[2], st.b[0] + st.b[1] + st.b[2]);
+    } else {
+        sw = [
+            st.w[0] * st.inv_det,
+            st.w[1] * st.inv_det,
+            st.w[2] * st.inv_det,
+        ];
+        ax = [st.a[0] * sw[0], st.a[1] * sw[1], st.a[2] * sw[2]];
+        by = [st.b[0] * sw[0], st.b[1] * sw[1], st.b[2] * sw[2]];
+    }
+    let m = T::max_value().to_f64c();
+    for (j, (&col, &d)) in cols.iter().zip(depth).enumerate() {
+        let e = st.eval(col, &t);
+        let inv = 1.0 / (e[0] + e[1] + e[2]);
+        let bp = [e[0] * inv, e[1] * inv, e[2] * inv];
+        let vd = bp[0] * st.w[0] + bp[1] * st.w[1] + bp[2] * st.w[2];
+        let (bary, dx, dy) = if persp {
+            // d(e_i / sum e) = (de_i - b_i d(sum e)) / sum e, de_i/dcol = a_i, de_i/drow = b_i.
+            (
+                bp,
+                [
+                    (st.a[0] - bp[0] * sa) * inv,
+                    (st.a[1] - bp[1] * sa) * inv,
+                    (st.a[2] - bp[2] * sa) * inv,
+                ],
+                [
+                    (st.b[0] - bp[0] * sb) * inv,
+                    (st.b[1] - bp[1] * sb) * inv,
+                    (st.b[2] - bp[2] * sb) * inv,
+                ],
+            )
+        } else {
+            // Screen-space barycentrics lambda_i = e_i w_i / det are affine in the pixel.
+            ([e[0] * sw[0], e[1] * sw[1], e[2] * sw[2]], ax, by)
+        };
+        // Every value within T's finite range (false for NaN) converts to a finite value; the
+        // saturating path gives the same values wherever the plain conversion is finite.
+        let mut ok = vd.abs() <= m;
+        for i in 0..3 {
+            ok &= (bary[i].abs() <= m) & (dx[i].abs() <= m) & (dy[i].abs() <= m);
+        }
+        let vals = if ok {
+            (
+                bary.map(T::from_f64c),
+                T::from_f64c(vd),
+                dx.map(T::from_f64c),
+                dy.map(T::from_f64c),
+            )
+        } else {
+            (bary.map(sat), sat(vd), dx.map(sat), dy.map(sat))
+        };
+        // SAFETY: slot `pos + j` is one of this run's (the caller's contract).
+        unsafe {
+            out.fragment(
+                pos + j,
+                rec.face,
+                vals.0,
+                T::from_f64c(d),
+                vals.1,
+                vals.2,
+                vals.3,
+            )
+        };
+    }
+}
+
 /// Assembles the tiles' fragments into the packed pixel-order layout: computes where each
 /// tile's local rows start in the output (prefix sums over image rows and, within a row,
-/// over tiles), then computes every fragment's values ([`super::edge::Setup::values`])
-/// straight into the final arrays (allocated uninitialised, each element written once), in
+/// over tiles), then computes every fragment's values (per run of one face's fragments in a
+/// row, [`write_run`]) straight into the final arrays (allocated uninitialised, each element written once), in
 /// parallel over tiles, whose face records are then a small working set. The result does not
 /// depend on the thread count.
 pub(crate) fn assemble<T: Real>(
@@ -388,21 +489,57 @@ pub(crate) fn assemble<T: Real>(
                     continue;
                 }
                 let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + n];
+                // Runs of consecutive fragments (in output order) of one face record get
+                // their values together ([`write_run`]); a run never spans rows.
+                let mut cols = [0.0f64; RUN];
+                let mut run = 0usize;
+                let (mut run_id, mut run_i, mut run_pos) = (u32::MAX, i, pos);
                 for (j, &cnt) in counts.iter().enumerate() {
-                    // SAFETY: as above.
+                    // SAFETY: pixel `first_px + j` lies in this tile only, and is below
+                    // `width * height`, within the capacity of `offsets`.
                     unsafe { out.offset(first_px + j, pos as u32) };
                     let col = (rect.c0 as usize + j) as f64;
                     for _ in 0..cnt {
-                        let rec = bins.rec(tile.idx[i]);
-                        let (b, vd, dx, dy) = rec.st.values::<T>(col, rf, persp);
-                        // SAFETY: `pos` runs over `tile_pos[t][lr]..` for this tile's
-                        // `row_len(lr)` fragments of the row: a range of `..total` that no
-                        // other tile or row has (prefix sums above), within the capacity.
-                        let d = T::from_f64c(tile.depth[i]);
-                        unsafe { out.fragment(pos, rec.face, b, d, vd, dx, dy) };
+                        let id = tile.idx[i];
+                        if id != run_id || run == RUN {
+                            if run > 0 {
+                                // SAFETY: see below.
+                                unsafe {
+                                    write_run(
+                                        bins.rec(run_id),
+                                        &cols[..run],
+                                        rf,
+                                        persp,
+                                        &tile.depth[run_i..run_i + run],
+                                        out,
+                                        run_pos,
+                                    )
+                                };
+                            }
+                            (run_id, run, run_i, run_pos) = (id, 0, i, pos);
+                        }
+                        cols[run] = col;
+                        run += 1;
                         pos += 1;
                         i += 1;
                     }
+                }
+                if run > 0 {
+                    // SAFETY: `pos` runs over `tile_pos[t][lr]..` for this tile's
+                    // `row_len(lr)` fragments of the row: a range of `..total` that no other
+                    // tile or row has (prefix sums above), within the capacity; a run covers
+                    // `run_pos..run_pos + run` of it.
+                    unsafe {
+                        write_run(
+                            bins.rec(run_id),
+                            &cols[..run],
+                            rf,
+                            persp,
+                            &tile.depth[run_i..run_i + run],
+                            out,
+                            run_pos,
+                        )
+                    };
                 }
             }
             i

@@ -8,7 +8,7 @@ use super::bin::{bin_faces, Bins};
 use super::clip::{ceil_u, floor_u, to_screen, Rect};
 use super::edge::Setup;
 use super::fragments::{assemble, Fragments, TileFrags};
-use super::{validate_inputs, RasterError, RasterSettings, TILE_SIZE};
+use super::{par_first_index, validate_inputs, RasterError, RasterSettings, TILE_SIZE};
 use crate::scatter::scatter_by_vertex;
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
@@ -263,8 +263,11 @@ fn test_pixel(
 /// `b = u / sum(u)`, `view_depth = 1 / sum(u)`, screen-space barycentrics `u_i w_i`, and
 /// `dL/dM = -M^-T (dL/du) u^T`.
 ///
-/// Contributions are computed in parallel and summed into the output in fragment order, so the
-/// result is bit-identical for any number of threads.
+/// Contributions are computed in parallel over fixed chunks of 512 fragments; within a chunk
+/// the contributions of each run of consecutive fragments of one face are summed (in fragment
+/// order), and the runs' sums are added into the output in fragment order, so the result is
+/// bit-identical for any number of threads. Divisions by `det M` are products with its
+/// reciprocal, computed once per face.
 ///
 /// # Errors
 /// As [`rasterize`], plus gradient arrays whose lengths differ from `frags.len()` and fragments
@@ -287,7 +290,7 @@ pub fn rasterize_backward<T: Real>(
     }
     frags.validate()?;
     let n = frags.len();
-    if let Some(i) = frags.face.iter().position(|&f| f as usize >= faces.len()) {
+    if let Some(i) = par_first_index(n, |i| frags.face[i] as usize >= faces.len()) {
         return Err(RasterError::FragmentsMismatch(format!(
             "fragment {i} has face {} but there are {} faces",
             frags.face[i],
@@ -316,53 +319,65 @@ pub fn rasterize_backward<T: Real>(
     const BLOCK: usize = 1 << 15;
     const CHUNK: usize = 512;
     let mut acc = vec![[0.0f64; 4]; clip.len()];
-    let mut contrib = vec![[[0.0f64; 4]; 3]; BLOCK.min(n)];
     let (wf, hf) = (s.width as f64, s.height as f64);
     let depth_grads = grad_depth.is_some() || grad_view_depth.is_some();
     let mut start = 0;
     while start < n {
         let end = (start + BLOCK).min(n);
-        let buf = &mut contrib[..end - start];
-        buf.par_chunks_mut(CHUNK).enumerate().for_each(|(ci, ch)| {
-            let i0 = start + ci * CHUNK;
-            let mut p = frags.pixel_of(i0);
-            // Consecutive fragments (along a row) mostly share their face: keep its setup.
-            let mut cur: Option<(u32, FaceVjp)> = None;
-            for (j, out) in ch.iter_mut().enumerate() {
-                let i = i0 + j;
-                while frags.offsets[p + 1] as usize <= i {
-                    p += 1;
-                }
-                let (row, col) = (p / s.width, p % s.width);
-                let px = [
-                    2.0 * (col as f64 + 0.5) / wf - 1.0,
-                    1.0 - 2.0 * (row as f64 + 0.5) / hf,
-                ];
-                let fi = frags.face[i];
-                let fv = match &cur {
-                    Some((cf, fv)) if *cf == fi => fv,
-                    _ => {
-                        let f = faces[fi as usize];
-                        let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
-                        &cur.insert((fi, FaceVjp::new(&v))).1
+        // Per chunk of fragments, one contribution per run of consecutive fragments of one
+        // face (their sum in fragment order): runs are found within fixed chunks, so the
+        // result does not depend on the thread count.
+        let runs: Vec<Vec<(u32, [[f64; 4]; 3])>> = (0..(end - start).div_ceil(CHUNK))
+            .into_par_iter()
+            .map(|ci| {
+                let i0 = start + ci * CHUNK;
+                let i1 = (i0 + CHUNK).min(end);
+                let mut out: Vec<(u32, [[f64; 4]; 3])> = Vec::new();
+                let mut p = frags.pixel_of(i0);
+                // Consecutive fragments (along a row) mostly share their face: keep its setup.
+                let mut cur: Option<(u32, FaceVjp)> = None;
+                for i in i0..i1 {
+                    while frags.offsets[p + 1] as usize <= i {
+                        p += 1;
                     }
-                };
-                let gb = grad_bary[i].map(|x| x.to_f64c());
-                *out = if depth_grads {
-                    let gd = grad_depth.map_or(0.0, |g| g[i].to_f64c());
-                    let gw = grad_view_depth.map_or(0.0, |g| g[i].to_f64c());
-                    fv.vjp::<true>(px, gb, gd, gw, s.perspective_correct)
-                } else {
-                    fv.vjp::<false>(px, gb, 0.0, 0.0, s.perspective_correct)
-                };
-            }
-        });
+                    let (row, col) = (p / s.width, p % s.width);
+                    let px = [
+                        2.0 * (col as f64 + 0.5) / wf - 1.0,
+                        1.0 - 2.0 * (row as f64 + 0.5) / hf,
+                    ];
+                    let fi = frags.face[i];
+                    let fv = match &cur {
+                        Some((cf, fv)) if *cf == fi => fv,
+                        _ => {
+                            let f = faces[fi as usize];
+                            let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
+                            out.push((fi, [[0.0; 4]; 3]));
+                            &cur.insert((fi, FaceVjp::new(&v))).1
+                        }
+                    };
+                    let gb = grad_bary[i].map(|x| x.to_f64c());
+                    let g = if depth_grads {
+                        let gd = grad_depth.map_or(0.0, |g| g[i].to_f64c());
+                        let gw = grad_view_depth.map_or(0.0, |g| g[i].to_f64c());
+                        fv.vjp::<true>(px, gb, gd, gw, s.perspective_correct)
+                    } else {
+                        fv.vjp::<false>(px, gb, 0.0, 0.0, s.perspective_correct)
+                    };
+                    let run = &mut out.last_mut().expect("a run").1;
+                    for m in 0..3 {
+                        for q in 0..4 {
+                            run[m][q] += g[m][q];
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
         // Fixed-order reduction: every vertex sums its contributions in fragment order
         // (parallel over vertex blocks, `scatter_by_vertex`).
-        let buf: &[[[f64; 4]; 3]] = buf;
         scatter_by_vertex(&mut acc, 1, |vr, out| {
-            for (j, g) in buf.iter().enumerate() {
-                let f = faces[frags.face[start + j] as usize];
+            for (fi, g) in runs.iter().flatten() {
+                let f = faces[*fi as usize];
                 for m in 0..3 {
                     let v = f[m] as usize;
                     if vr.contains(&v) {
@@ -399,6 +414,8 @@ struct FaceVjp {
     v: [[f64; 4]; 3],
     c: [[f64; 3]; 3],
     det: f64,
+    /// `1 / det`: the divisions by `det` of [`fragment_vjp`] are products with it.
+    inv_det: f64,
 }
 
 impl FaceVjp {
@@ -410,7 +427,12 @@ impl FaceVjp {
             cross(col(0), col(1)),
         ];
         let det = dot(col(0), c[0]);
-        FaceVjp { v: *v, c, det }
+        FaceVjp {
+            v: *v,
+            c,
+            det,
+            inv_det: 1.0 / det,
+        }
     }
 
     /// `dL/d(clip of the face's three vertices)` of one fragment at NDC pixel `px`.
@@ -431,21 +453,32 @@ impl FaceVjp {
         gw: f64,
         persp: bool,
     ) -> [[f64; 4]; 3] {
-        fragment_vjp::<DEPTH>(&self.v, &self.c, self.det, px, gb, gd, gw, persp)
+        fragment_vjp::<DEPTH>(
+            &self.v,
+            &self.c,
+            self.det,
+            self.inv_det,
+            px,
+            gb,
+            gd,
+            gw,
+            persp,
+        )
     }
 }
 
-/// `(v^T C) / det` for the cofactor matrix `C` of a face's clip-space vertex matrix: the
-/// gradient of the edge-function coefficients from the gradient `v` of the corners' weights.
+/// `(v^T C) / det` (as a product with `inv_det = 1 / det`) for the cofactor matrix `C` of a
+/// face's clip-space vertex matrix: the gradient of the edge-function coefficients from the
+/// gradient `v` of the corners' weights.
 #[inline(always)]
-fn vec_mat_over(v: &[f64; 3], c: &[[f64; 3]; 3], det: f64) -> [f64; 3] {
+fn vec_mat_over(v: &[f64; 3], c: &[[f64; 3]; 3], inv_det: f64) -> [f64; 3] {
     let mut q = [0.0; 3];
     for i in 0..3 {
         for a in 0..3 {
             q[a] += v[i] * c[i][a];
         }
     }
-    q.map(|x| x / det)
+    q.map(|x| x * inv_det)
 }
 
 /// The body of [`FaceVjp::vjp`].
@@ -455,6 +488,7 @@ fn fragment_vjp<const DEPTH: bool>(
     v: &[[f64; 4]; 3],
     c: &[[f64; 3]; 3],
     det: f64,
+    inv_det: f64,
     px: [f64; 2],
     gb: [f64; 3],
     gd: f64,
@@ -462,11 +496,15 @@ fn fragment_vjp<const DEPTH: bool>(
     persp: bool,
 ) -> [[f64; 4]; 3] {
     let mut out = [[0.0; 4]; 3];
-    if det == 0.0 || !det.is_finite() {
+    if det == 0.0 || !det.is_finite() || !inv_det.is_finite() {
         return out;
     }
     let p = [px[0], px[1], 1.0];
-    let u = [dot(c[0], p) / det, dot(c[1], p) / det, dot(c[2], p) / det];
+    let u = [
+        dot(c[0], p) * inv_det,
+        dot(c[1], p) * inv_det,
+        dot(c[2], p) * inv_det,
+    ];
     let w = [v[0][3], v[1][3], v[2][3]];
     // Screen-space barycentrics without depth gradients have no perspective-correct part
     // (its g is zero, so it adds only zeros).
@@ -484,7 +522,7 @@ fn fragment_vjp<const DEPTH: bool>(
             g_w = gw - gd * d / w_frag;
         }
         let s = dot(g, b) + g_w * w_frag;
-        let q = vec_mat_over(&[s - g[0], s - g[1], s - g[2]], c, det);
+        let q = vec_mat_over(&[s - g[0], s - g[1], s - g[2]], c, inv_det);
         for m in 0..3 {
             out[m][0] = b[m] * q[0];
             out[m][1] = b[m] * q[1];
@@ -495,7 +533,7 @@ fn fragment_vjp<const DEPTH: bool>(
         }
     }
     if !persp {
-        let ql = vec_mat_over(&[gb[0] * w[0], gb[1] * w[1], gb[2] * w[2]], c, det);
+        let ql = vec_mat_over(&[gb[0] * w[0], gb[1] * w[1], gb[2] * w[2]], c, inv_det);
         for m in 0..3 {
             out[m][0] -= u[m] * ql[0];
             out[m][1] -= u[m] * ql[1];

@@ -38,7 +38,11 @@
 //!   finds where every tile row starts in the packed pixel-order output (prefix sums) and,
 //!   in parallel over tiles (whose face records are a small working set), computes each
 //!   fragment's barycentrics, depths and derivatives straight into the output arrays
-//!   (allocated uninitialised and written once). Bins list faces in increasing index order
+//!   (allocated uninitialised and written once), per run of consecutive fragments of one
+//!   face in a tile row (the record, the row part of its edge functions and its per-face
+//!   constants taken once per run; each fragment's values are the same expressions as
+//!   computed alone). Input validation (face indices, finite vertices) runs in parallel and
+//!   reports the first offender in index order. Bins list faces in increasing index order
 //!   and depth ties go to the lower face index, so the result is bit-identical for any number
 //!   of threads.
 //! * **Degenerate input.** Fragments whose `f64` `sum(e)` is not positive (slivers at the limit
@@ -52,6 +56,8 @@
 // `!(a <= b)` is used deliberately throughout: it is true for NaN, which must take the
 // conservative branch.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use rayon::prelude::*;
 
 mod bin;
 mod clip;
@@ -247,6 +253,15 @@ pub enum RasterError {
     FragmentsMismatch(String),
 }
 
+/// The first `i < n` (in index order) with `bad(i)`: blocks of indices are scanned in
+/// parallel, each with a plain loop, and the first block that has one wins.
+pub(crate) fn par_first_index(n: usize, bad: impl Fn(usize) -> bool + Sync) -> Option<usize> {
+    const BLOCK: usize = 1 << 14;
+    (0..n.div_ceil(BLOCK))
+        .into_par_iter()
+        .find_map_first(|b| (b * BLOCK..((b + 1) * BLOCK).min(n)).find(|&i| bad(i)))
+}
+
 /// Checks settings, face indices and vertex finiteness.
 pub(crate) fn validate_inputs<T: autodiff::Real>(
     clip: &[[T; 4]],
@@ -261,25 +276,23 @@ pub(crate) fn validate_inputs<T: autodiff::Real>(
             max,
         });
     }
+    // In parallel over large blocks; the first offender (in index order) is reported.
     let nv = clip.len();
-    for (f, face) in faces.iter().enumerate() {
-        for &i in face {
-            if i as usize >= nv {
-                return Err(RasterError::FaceIndexOutOfRange {
-                    face: f,
-                    index: i,
-                    num_vertices: nv,
-                });
-            }
-        }
+    let bad_face = par_first_index(faces.len(), |f| faces[f].iter().any(|&i| i as usize >= nv));
+    if let Some(f) = bad_face {
+        let index = *faces[f].iter().find(|&&i| i as usize >= nv).expect("found");
+        return Err(RasterError::FaceIndexOutOfRange {
+            face: f,
+            index,
+            num_vertices: nv,
+        });
     }
-    for (v, c) in clip.iter().enumerate() {
-        if !c.iter().all(|x| x.is_finite()) {
-            return Err(RasterError::NonFiniteVertex {
-                vertex: v,
-                coords: c.map(|x| x.to_f64c()),
-            });
-        }
+    let bad_vertex = par_first_index(clip.len(), |v| !clip[v].iter().all(|x| x.is_finite()));
+    if let Some(v) = bad_vertex {
+        return Err(RasterError::NonFiniteVertex {
+            vertex: v,
+            coords: clip[v].map(|x| x.to_f64c()),
+        });
     }
     Ok(())
 }
