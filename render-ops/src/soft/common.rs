@@ -199,6 +199,25 @@ impl TileBins {
         order
     }
 
+    /// The row spans of face `fi`'s cut-off region over its whole box, as `(row, py, a, b)`:
+    /// image row, its NDC y and the first and last column that may pass the cut-off (what
+    /// the per-face backward passes walk). Empty for a face that was not binned.
+    #[inline]
+    pub fn face_rows(&self, fi: usize) -> impl Iterator<Item = (usize, f64, usize, usize)> + '_ {
+        let rc = self.rects[fi];
+        let span = self.span(fi);
+        let (c0, c1) = (rc[0] as usize, rc[1] as usize);
+        let rows = if rc[0] <= rc[1] {
+            rc[2] as usize..rc[3] as usize + 1
+        } else {
+            0..0
+        };
+        rows.filter_map(move |row| {
+            let py = self.py[row];
+            span.row(py, c0, c1).map(|(a, b)| (row, py, a, b))
+        })
+    }
+
     /// The part of face `fi`'s box inside tile `t` as (c0, c1, r0, r1), inclusive, in image
     /// pixels; `None` when they do not overlap.
     #[inline]

@@ -424,18 +424,7 @@ impl DibrAlphaOp {
         let g = &bins.geoms[fi];
         let (xmax, cut2) = (s.cutoff_x(), s.cutoff_sq());
         let mut gv = [[0.0f64; 2]; 3];
-        let (c0, c1, r0, r1) = (
-            rc[0] as usize,
-            rc[1] as usize,
-            rc[2] as usize,
-            rc[3] as usize,
-        );
-        let span = bins.span(fi);
-        for row in r0..=r1 {
-            let py = bins.py[row];
-            let Some((a, b)) = span.row(py, c0, c1) else {
-                continue;
-            };
+        for (row, py, a, b) in bins.face_rows(fi) {
             for col in a..=b {
                 let pi = row * s.width + col;
                 let (gp, prod) = (go[pi], prep.prod[pi]);

@@ -733,21 +733,10 @@ impl SoftRasOp {
         // NDC and view-depth gradients of the three vertices.
         let mut gv = [[0.0f64; 2]; 3];
         let mut gdep = [0.0f64; 3];
-        let (c0, c1c, r0, r1) = (
-            rc[0] as usize,
-            rc[1] as usize,
-            rc[2] as usize,
-            rc[3] as usize,
-        );
-        let span = bins.span(fi);
         let mut qs = [Pair::default(); BATCH];
         let mut cols = [0usize; BATCH];
         let (mut e_sig, mut e_f) = ([0.0f64; BATCH], [0.0f64; BATCH]);
-        for row in r0..=r1 {
-            let py = bins.py[row];
-            let Some((a, b)) = span.row(py, c0, c1c) else {
-                continue;
-            };
+        for (row, py, a, b) in bins.face_rows(fi) {
             // In batches of up to BATCH kept pairs: first their geometry, then their two
             // exponentials, then the chain rule, so that the long dependency chains of
             // independent pairs overlap instead of running one after another.

@@ -597,18 +597,7 @@ impl SoftRasOp {
         let mut vgv = [[zero; 2]; 3];
         let mut vgdep = [zero; 3];
         let mut vgattr = [[zero; FAST_MAX_C]; 3];
-        let (c0, c1c, r0, r1) = (
-            rc[0] as usize,
-            rc[1] as usize,
-            rc[2] as usize,
-            rc[3] as usize,
-        );
-        let span = bins.span(fi);
-        for row in r0..=r1 {
-            let py = bins.py[row];
-            let Some((a, b)) = span.row(py, c0, c1c) else {
-                continue;
-            };
+        for (row, py, a, b) in bins.face_rows(fi) {
             let qy = (py - g.o[1]) as f32;
             let mut cs = a;
             while cs <= b {
