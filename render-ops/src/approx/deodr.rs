@@ -61,8 +61,8 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::{
-    attribute_grad, bin_by_lines, cross2, depth_buffer, edge_weights, interior_grad, prepare,
-    render_hard, sub, ApproxSettings, Screen,
+    bin_by_lines, cross2, depth_buffer, edge_weights, hard_render_grad, prepare, render_hard, sub,
+    tensor_f64, ApproxSettings, Screen,
 };
 use crate::error::RenderError;
 use crate::raster::Fragments;
@@ -604,31 +604,28 @@ impl<T: Real> Op<T> for DeodrOp<T> {
             }
         };
         let g_hard: &[T] = g_hard;
-        let g_attr = ctx.needs_grad[1].then(|| {
-            let mut ga = attribute_grad(fr, &self.faces, ctx.inputs[1].shape(), g_hard);
-            let gs = ga.as_slice_mut().expect("standard");
+        let hg = hard_render_grad(
+            "deodr",
+            ctx,
+            &self.faces,
+            fr,
+            g_hard,
+            &self.settings,
+            ctx.needs_grad[0],
+        )?;
+        let g_attr = hg.attr.map(|mut ga| {
             for r in &contrib {
                 for (v, vals) in r.attr_vertex.iter().zip(r.attr_grad.chunks(c.max(1))) {
                     for (ch, x) in vals.iter().enumerate() {
-                        gs[*v as usize * c + ch] += T::from_f64c(*x);
+                        ga[*v as usize * c + ch] += *x;
                     }
                 }
             }
-            ga
+            tensor_f64(ctx.inputs[1].shape(), ga)
         });
-        if !ctx.needs_grad[0] {
+        let Some(interior) = hg.pos else {
             return Ok(vec![None, g_attr]);
-        }
-        let attr_t = ctx.inputs[1].as_standard_layout();
-        let interior = interior_grad(
-            "deodr",
-            ctx.inputs[0],
-            &self.faces,
-            fr,
-            attr_t.as_slice().expect("standard"),
-            g_hard,
-            &self.settings,
-        )?;
+        };
         // Edges: pixel-space and w gradients per vertex, summed in row order.
         let nv = self.screen.px.len();
         let mut acc = vec![[0.0f64; 3]; nv];
@@ -645,8 +642,7 @@ impl<T: Real> Op<T> for DeodrOp<T> {
             .zip(&acc)
             .enumerate()
             .flat_map(|(v, (a, e))| {
-                let a = a.map(|x| x.to_f64c());
-                let mut out = a;
+                let mut out = *a;
                 if e[0] != 0.0 || e[1] != 0.0 {
                     let ce = self.screen.px_to_clip(v, [e[0], e[1]]);
                     for k in 0..4 {

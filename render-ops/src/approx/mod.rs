@@ -40,6 +40,7 @@
 //! bit-identical for any number of rayon threads.
 
 pub mod deodr;
+mod hard_grad;
 pub mod nmr;
 pub mod opendr;
 pub mod tf_mesh;
@@ -60,6 +61,7 @@ use crate::error::RenderError;
 use crate::raster::{Fragments, RasterSettings};
 use crate::rasterize::clip_rows;
 use crate::soft::common::ndc_to_clip;
+use hard_grad::HardGrad;
 
 /// Settings of [`tf_mesh`], [`opendr`], [`nmr`] and [`deodr`].
 #[derive(Clone, Debug, PartialEq)]
@@ -263,78 +265,40 @@ fn render_hard_rows<T: Real, const C: usize>(
         });
 }
 
-/// Exact gradient of the hard render with respect to the attributes: `dL/dA[f_k] += b_k dL/dI_p`
-/// over covered pixels, in pixel order for every vertex (parallel over vertex blocks,
-/// [`crate::scatter::scatter_by_vertex`]).
-pub(crate) fn attribute_grad<T: Real>(
-    frags: &Fragments<T>,
-    faces: &[[u32; 3]],
-    attrs_shape: &[usize],
-    g: &[T],
-) -> Tensor<T> {
-    let c = attrs_shape[1];
-    let mut ga = vec![T::zero(); attrs_shape[0] * c];
-    let visit = |vr: std::ops::Range<usize>, out: &mut [T]| {
-        for p in 0..frags.num_pixels() {
-            let (i, e) = (frags.offsets[p] as usize, frags.offsets[p + 1] as usize);
-            if i == e {
-                continue;
-            }
-            let f = faces[frags.face[i] as usize];
-            let b = frags.bary[i];
-            let gp = &g[p * (c + 1)..][..c];
-            for k in 0..3 {
-                let v = f[k] as usize;
-                if vr.contains(&v) {
-                    let o = &mut out[(v - vr.start) * c..][..c];
-                    for (o, &gc) in o.iter_mut().zip(gp) {
-                        *o += b[k] * gc;
-                    }
-                }
-            }
-        }
-    };
-    crate::scatter::scatter_by_vertex(&mut ga, c, visit);
-    ArrayD::from_shape_vec(IxDyn(attrs_shape), ga).expect("same shape")
-}
-
-/// The interior gradient of the hard render with respect to the clip positions:
-/// `dL/db_k = sum_ch g_ch A[f_k, ch]` per fragment (`g` is `dL/dI`, `[H * W * (C + 1)]`, `attrs`
-/// `[V * C]`), through the hard rasterizer's barycentric backward
-/// ([`crate::raster::rasterize_backward`]).
-pub(crate) fn interior_grad<T: Real>(
+/// The exact gradient of the hard render ([`hard_grad::hard_grad`]) for an op whose inputs
+/// are the clip positions and the attributes: `g` is `dL/dI` (`[H * W * (C + 1)]`).
+pub(crate) fn hard_render_grad<T: Real>(
     op: &'static str,
-    clip: &Tensor<T>,
+    ctx: &BackwardCtx<'_, T>,
     faces: &[[u32; 3]],
     frags: &Fragments<T>,
-    attrs: &[T],
     g: &[T],
     settings: &ApproxSettings,
-) -> autodiff::Result<Vec<[T; 4]>> {
-    let c = attrs.len() / clip.shape()[0].max(1);
-    const CHUNK: usize = 1024;
-    let mut gbary = vec![[T::zero(); 3]; frags.len()];
-    gbary
-        .par_chunks_mut(CHUNK)
-        .enumerate()
-        .for_each(|(ci, out)| {
-            // Fragments are in pixel order: one binary search per chunk, then a walk.
-            let i0 = ci * CHUNK;
-            let mut p = frags.pixel_of(i0);
-            for (j, o) in out.iter_mut().enumerate() {
-                let i = i0 + j;
-                while frags.offsets[p + 1] as usize <= i {
-                    p += 1;
-                }
-                let f = faces[frags.face[i] as usize];
-                let gp = &g[p * (c + 1)..p * (c + 1) + c];
-                *o = f.map(|vi| (0..c).map(|ch| gp[ch] * attrs[vi as usize * c + ch]).sum());
-            }
-        });
-    let err = |e: String| AutodiffError::Op { op, detail: e };
-    let rows = clip_rows(clip).map_err(|e| err(e.to_string()))?;
-    crate::raster::rasterize_backward(&rows, faces, frags, &gbary, None, None, &settings.raster())
-        .map_err(|e| err(e.to_string()))
+    need_pos: bool,
+) -> autodiff::Result<HardGrad> {
+    let clip = clip_rows(ctx.inputs[0]).map_err(|e| AutodiffError::Op {
+        op,
+        detail: e.to_string(),
+    })?;
+    let attrs = ctx.inputs[1].as_standard_layout();
+    let c = ctx.inputs[1].shape()[1];
+    Ok(hard_grad::hard_grad(
+        &clip,
+        faces,
+        frags,
+        attrs.as_slice().expect("standard"),
+        c,
+        g,
+        settings.perspective_correct,
+        need_pos,
+        ctx.needs_grad[1],
+    ))
+}
+
+/// A tensor of the given shape from `f64` values.
+pub(crate) fn tensor_f64<T: Real>(shape: &[usize], v: Vec<f64>) -> Tensor<T> {
+    ArrayD::from_shape_vec(IxDyn(shape), v.into_iter().map(T::from_f64c).collect())
+        .expect("same shape")
 }
 
 /// Screen geometry of the vertices: pixel coordinates `(col, row)` (pixel centres are integers)
@@ -467,9 +431,9 @@ pub(crate) struct BoundaryInputs {
 impl<T: Real> HardRender<T> {
     /// The backward of the methods whose forward is the hard render and whose position
     /// gradient is the interior one plus a boundary term ([`tf_mesh`], [`nmr`]): exact
-    /// attribute gradients ([`attribute_grad`]) and, for the positions, the interior
-    /// (barycentric) part of [`interior_grad`] plus the method's `boundary` part (per-vertex
-    /// clip coordinates, `f64`), each computed only where the input needs it.
+    /// attribute gradients and, for the positions, the interior (barycentric) part, both from
+    /// [`hard_render_grad`], plus the method's `boundary` part (per-vertex clip coordinates,
+    /// `f64`), each computed only where the input needs it.
     pub fn backward(
         &self,
         op: &'static str,
@@ -479,28 +443,30 @@ impl<T: Real> HardRender<T> {
         let (frags, faces) = (&*self.fragments, &self.faces[..]);
         let g_out = ctx.grad_outputs[0].as_standard_layout();
         let g_t = g_out.as_slice().expect("standard");
-        let attr_t = ctx.inputs[1].as_standard_layout();
-        let attr_t = attr_t.as_slice().expect("standard");
-        let g_attr =
-            ctx.needs_grad[1].then(|| attribute_grad(frags, faces, ctx.inputs[1].shape(), g_t));
-        if !ctx.needs_grad[0] {
+        let hg = hard_render_grad(
+            op,
+            ctx,
+            faces,
+            frags,
+            g_t,
+            &self.settings,
+            ctx.needs_grad[0],
+        )?;
+        let g_attr = hg.attr.map(|a| tensor_f64(ctx.inputs[1].shape(), a));
+        let Some(interior) = hg.pos else {
             return Ok(vec![None, g_attr]);
-        }
-        let interior = interior_grad(op, ctx.inputs[0], faces, frags, attr_t, g_t, &self.settings)?;
+        };
         let inputs = BoundaryInputs {
             screen: Screen::new(ctx.inputs[0], frags.width, frags.height),
             g: grad_f64(ctx),
-            attrs: attr_t.iter().map(|x| x.to_f64c()).collect(),
+            attrs: ctx.inputs[1].iter().map(|x| x.to_f64c()).collect(),
             img: ctx.outputs[0].iter().map(|x| x.to_f64c()).collect(),
         };
         let b = boundary(&inputs);
         let total = interior
             .iter()
             .zip(&b)
-            .map(|(a, b)| {
-                let a = a.map(|x| x.to_f64c());
-                [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]]
-            })
+            .map(|(a, b)| [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]])
             .collect();
         Ok(vec![Some(clip_tensor(total)), g_attr])
     }

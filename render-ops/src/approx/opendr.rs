@@ -57,8 +57,8 @@ use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
 use rayon::prelude::*;
 
 use super::{
-    attribute_grad, clip_tensor, grad_f64, reduce_rows, screen_bary, ApproxSettings, HardRender,
-    Screen,
+    clip_tensor, grad_f64, hard_render_grad, reduce_rows, screen_bary, tensor_f64, ApproxSettings,
+    HardRender, Screen,
 };
 use crate::error::RenderError;
 
@@ -192,15 +192,21 @@ impl<T: Real> Op<T> for OpenDrOp<T> {
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let fr = &self.hard.fragments;
-        let g_attr = ctx.needs_grad[1].then(|| {
+        let g_attr = if ctx.needs_grad[1] {
             let g = ctx.grad_outputs[0].as_standard_layout();
-            attribute_grad(
-                fr,
+            let hg = hard_render_grad(
+                "opendr",
+                ctx,
                 &self.hard.faces,
-                ctx.inputs[1].shape(),
+                fr,
                 g.as_slice().expect("standard"),
-            )
-        });
+                &self.hard.settings,
+                false,
+            )?;
+            hg.attr.map(|a| tensor_f64(ctx.inputs[1].shape(), a))
+        } else {
+            None
+        };
         if !ctx.needs_grad[0] {
             return Ok(vec![None, g_attr]);
         }

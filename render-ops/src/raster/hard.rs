@@ -334,8 +334,10 @@ pub fn rasterize_backward<T: Real>(
                 let i1 = (i0 + CHUNK).min(end);
                 let mut out: Vec<(u32, [[f64; 4]; 3])> = Vec::new();
                 let mut p = frags.pixel_of(i0);
-                // Consecutive fragments (along a row) mostly share their face: keep its setup.
+                // Consecutive fragments (along a row) mostly share their face: keep its setup
+                // and, without depth gradients, the run's factored sum (`RunVjp`).
                 let mut cur: Option<(u32, FaceVjp)> = None;
+                let mut run_acc = RunVjp::default();
                 for i in i0..i1 {
                     while frags.offsets[p + 1] as usize <= i {
                         p += 1;
@@ -346,29 +348,35 @@ pub fn rasterize_backward<T: Real>(
                         1.0 - 2.0 * (row as f64 + 0.5) / hf,
                     ];
                     let fi = frags.face[i];
-                    let fv = match &cur {
-                        Some((cf, fv)) if *cf == fi => fv,
-                        _ => {
-                            let f = faces[fi as usize];
-                            let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
-                            out.push((fi, [[0.0; 4]; 3]));
-                            &cur.insert((fi, FaceVjp::new(&v))).1
+                    if !matches!(&cur, Some((cf, _)) if *cf == fi) {
+                        if let (Some((_, fv)), false) = (&cur, depth_grads) {
+                            out.last_mut().expect("a run").1 =
+                                fv.finish(&run_acc, s.perspective_correct);
+                            run_acc = RunVjp::default();
                         }
-                    };
+                        let f = faces[fi as usize];
+                        let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
+                        out.push((fi, [[0.0; 4]; 3]));
+                        cur = Some((fi, FaceVjp::new(&v)));
+                    }
+                    let fv = &cur.as_ref().expect("a face").1;
                     let gb = grad_bary[i].map(|x| x.to_f64c());
-                    let g = if depth_grads {
+                    if depth_grads {
                         let gd = grad_depth.map_or(0.0, |g| g[i].to_f64c());
                         let gw = grad_view_depth.map_or(0.0, |g| g[i].to_f64c());
-                        fv.vjp::<true>(px, gb, gd, gw, s.perspective_correct)
-                    } else {
-                        fv.vjp::<false>(px, gb, 0.0, 0.0, s.perspective_correct)
-                    };
-                    let run = &mut out.last_mut().expect("a run").1;
-                    for m in 0..3 {
-                        for q in 0..4 {
-                            run[m][q] += g[m][q];
+                        let g = fv.vjp(px, gb, gd, gw, s.perspective_correct);
+                        let run = &mut out.last_mut().expect("a run").1;
+                        for m in 0..3 {
+                            for q in 0..4 {
+                                run[m][q] += g[m][q];
+                            }
                         }
+                    } else {
+                        fv.accumulate(&mut run_acc, px, gb, s.perspective_correct);
                     }
+                }
+                if let (Some((_, fv)), false) = (&cur, depth_grads) {
+                    out.last_mut().expect("a run").1 = fv.finish(&run_acc, s.perspective_correct);
                 }
                 out
             })
@@ -410,7 +418,7 @@ fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 /// The per-face part of [`FaceVjp::vjp`]: the face's clip vertices, the cofactor columns
 /// `c_i = v_{i+1} x v_{i+2}` over `(x, y, w)` and `det M`.
-struct FaceVjp {
+pub(crate) struct FaceVjp {
     v: [[f64; 4]; 3],
     c: [[f64; 3]; 3],
     det: f64,
@@ -418,8 +426,20 @@ struct FaceVjp {
     inv_det: f64,
 }
 
+/// The sum of [`FaceVjp::vjp`] without depth gradients over a run of fragments of one face,
+/// factored. Each fragment's product is linear in the cofactors over `det`:
+/// `dL/d(x, y, w)_m = (sum_i K_mi c_i) / det` with `K_mi = b_m (g . b - g_i)` when
+/// barycentrics are perspective-correct, and `K_mi = -u_m g_i w_i` (plus `u_m g_m` on
+/// `dL/dw_m`) in screen space. The run sums the 3x3 factors `K` (and `u_m g_i`), and
+/// [`FaceVjp::finish`] multiplies by the cofactors once.
+#[derive(Clone, Copy, Default)]
+pub(crate) struct RunVjp {
+    k: [[f64; 3]; 3],
+}
+
 impl FaceVjp {
-    fn new(v: &[[f64; 4]; 3]) -> Self {
+    /// The per-face setup from the clip coordinates of its three vertices.
+    pub(crate) fn new(v: &[[f64; 4]; 3]) -> Self {
         let col = |i: usize| [v[i][0], v[i][1], v[i][3]];
         let c = [
             cross(col(1), col(2)),
@@ -435,6 +455,13 @@ impl FaceVjp {
         }
     }
 
+    /// Whether the face has a usable inverse (`det M` finite, non-zero, not subnormal);
+    /// a face without one gets no gradient.
+    #[inline]
+    fn invertible(&self) -> bool {
+        self.det != 0.0 && self.det.is_finite() && self.inv_det.is_finite()
+    }
+
     /// `dL/d(clip of the face's three vertices)` of one fragment at NDC pixel `px`.
     ///
     /// With `M = [v0 v1 v2]` over `(x, y, w)`, `u = M^-1 p`, `W = 1 / sum u` (view depth),
@@ -443,17 +470,8 @@ impl FaceVjp {
     /// depth gradient into `g_b += g_D z / W`, `g_W -= g_D D / W`), and `dL/dz_m = g_D b_m / W`.
     /// For screen-space barycentrics `l_i = u_i w_i`: `dL/dv_m -= u_m M^-T (g_l * w)`,
     /// `dL/dw_m += g_l,m u_m`.
-    /// `DEPTH == false` requires `gd == gw == 0` and skips their terms (the result is the
-    /// same up to the sign of zeros, which the accumulation does not see).
-    fn vjp<const DEPTH: bool>(
-        &self,
-        px: [f64; 2],
-        gb: [f64; 3],
-        gd: f64,
-        gw: f64,
-        persp: bool,
-    ) -> [[f64; 4]; 3] {
-        fragment_vjp::<DEPTH>(
+    fn vjp(&self, px: [f64; 2], gb: [f64; 3], gd: f64, gw: f64, persp: bool) -> [[f64; 4]; 3] {
+        fragment_vjp(
             &self.v,
             &self.c,
             self.det,
@@ -464,6 +482,52 @@ impl FaceVjp {
             gw,
             persp,
         )
+    }
+
+    /// Adds the factors of one fragment at NDC pixel `px` with `dL/dbary = gb` (no depth
+    /// gradients) to the run's sum `acc` ([`RunVjp`]).
+    #[inline(always)]
+    pub(crate) fn accumulate(&self, acc: &mut RunVjp, px: [f64; 2], gb: [f64; 3], persp: bool) {
+        let c = &self.c;
+        let u = [0, 1, 2].map(|i| (c[i][0] * px[0] + c[i][1] * px[1] + c[i][2]) * self.inv_det);
+        if persp {
+            let w_frag = 1.0 / (u[0] + u[1] + u[2]);
+            let b = u.map(|x| x * w_frag);
+            let s = dot(gb, b);
+            for m in 0..3 {
+                for i in 0..3 {
+                    acc.k[m][i] += b[m] * (s - gb[i]);
+                }
+            }
+        } else {
+            for m in 0..3 {
+                for i in 0..3 {
+                    acc.k[m][i] += u[m] * gb[i];
+                }
+            }
+        }
+    }
+
+    /// The run's gradient `dL/d(clip)` of the face's three vertices from its factors `acc`.
+    pub(crate) fn finish(&self, acc: &RunVjp, persp: bool) -> [[f64; 4]; 3] {
+        let mut out = [[0.0; 4]; 3];
+        if !self.invertible() {
+            return out;
+        }
+        let w = [self.v[0][3], self.v[1][3], self.v[2][3]];
+        for m in 0..3 {
+            let k = if persp {
+                acc.k[m]
+            } else {
+                [0, 1, 2].map(|i| -acc.k[m][i] * w[i])
+            };
+            let q = vec_mat_over(&k, &self.c, self.inv_det);
+            out[m] = [q[0], q[1], 0.0, q[2]];
+            if !persp {
+                out[m][3] += acc.k[m][m];
+            }
+        }
+        out
     }
 }
 
@@ -484,7 +548,7 @@ fn vec_mat_over(v: &[f64; 3], c: &[[f64; 3]; 3], inv_det: f64) -> [f64; 3] {
 /// The body of [`FaceVjp::vjp`].
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn fragment_vjp<const DEPTH: bool>(
+fn fragment_vjp(
     v: &[[f64; 4]; 3],
     c: &[[f64; 3]; 3],
     det: f64,
@@ -506,30 +570,23 @@ fn fragment_vjp<const DEPTH: bool>(
         dot(c[2], p) * inv_det,
     ];
     let w = [v[0][3], v[1][3], v[2][3]];
-    // Screen-space barycentrics without depth gradients have no perspective-correct part
-    // (its g is zero, so it adds only zeros).
-    if persp || DEPTH {
+    {
         let w_frag = 1.0 / (u[0] + u[1] + u[2]);
         let b = u.map(|x| x * w_frag);
         let z = [v[0][2], v[1][2], v[2][2]];
         let mut g = if persp { gb } else { [0.0; 3] };
-        let mut g_w = 0.0;
-        if DEPTH {
-            let d = dot(b, z) / w_frag;
-            for i in 0..3 {
-                g[i] += gd * z[i] / w_frag;
-            }
-            g_w = gw - gd * d / w_frag;
+        let d = dot(b, z) / w_frag;
+        for i in 0..3 {
+            g[i] += gd * z[i] / w_frag;
         }
+        let g_w = gw - gd * d / w_frag;
         let s = dot(g, b) + g_w * w_frag;
         let q = vec_mat_over(&[s - g[0], s - g[1], s - g[2]], c, inv_det);
         for m in 0..3 {
             out[m][0] = b[m] * q[0];
             out[m][1] = b[m] * q[1];
             out[m][3] = b[m] * q[2];
-            if DEPTH {
-                out[m][2] = gd * b[m] / w_frag;
-            }
+            out[m][2] = gd * b[m] / w_frag;
         }
     }
     if !persp {
@@ -541,4 +598,74 @@ fn fragment_vjp<const DEPTH: bool>(
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Deterministic values in `[-1, 1)` (a 64-bit LCG).
+    fn values(seed: u64) -> impl FnMut() -> f64 {
+        let mut x = seed;
+        move || {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (x >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+        }
+    }
+
+    /// The factored run sum of [`FaceVjp::accumulate`] / [`FaceVjp::finish`] equals the sum of
+    /// the per-fragment products [`FaceVjp::vjp`] without depth gradients, for both
+    /// interpolation modes.
+    #[test]
+    fn factored_run_sum_matches_per_fragment_products() {
+        let mut r = values(7);
+        for trial in 0..50 {
+            let persp = trial % 2 == 0;
+            // A face in front of the camera (w in [1, 3]) whose screen triangle contains the
+            // NDC points drawn below only roughly: the identity is algebraic.
+            let v: [[f64; 4]; 3] = [[-0.8, -0.7], [0.9, -0.6], [0.1, 0.8]].map(|xy| {
+                let w = 2.0 + r();
+                [(xy[0] + 0.1 * r()) * w, (xy[1] + 0.1 * r()) * w, r(), w]
+            });
+            let fv = FaceVjp::new(&v);
+            let mut acc = RunVjp::default();
+            let mut want = [[0.0; 4]; 3];
+            for _ in 0..(1 + trial % 9) {
+                let px = [0.3 * r(), 0.3 * r()];
+                let gb = [r(), r(), r()];
+                fv.accumulate(&mut acc, px, gb, persp);
+                let g = fv.vjp(px, gb, 0.0, 0.0, persp);
+                for m in 0..3 {
+                    for q in 0..4 {
+                        want[m][q] += g[m][q];
+                    }
+                }
+            }
+            let got = fv.finish(&acc, persp);
+            let scale = want.iter().flatten().fold(0.0f64, |a, x| a.max(x.abs()));
+            for m in 0..3 {
+                for q in 0..4 {
+                    assert!(
+                        (got[m][q] - want[m][q]).abs() <= 1e-12 * scale.max(1.0),
+                        "trial {trial} persp {persp}: [{m}][{q}] {} vs {}",
+                        got[m][q],
+                        want[m][q]
+                    );
+                }
+            }
+        }
+    }
+
+    /// A face without a usable inverse (zero determinant) gets no gradient from either form.
+    #[test]
+    fn singular_face_gets_no_gradient() {
+        let v = [[0.0, 0.0, 0.0, 1.0], [1.0, 1.0, 0.0, 1.0], [2.0, 2.0, 0.0, 1.0]];
+        let fv = FaceVjp::new(&v);
+        let mut acc = RunVjp::default();
+        fv.accumulate(&mut acc, [0.1, 0.2], [1.0, 2.0, 3.0], true);
+        assert_eq!(fv.finish(&acc, true), [[0.0; 4]; 3]);
+        assert_eq!(fv.vjp([0.1, 0.2], [1.0, 2.0, 3.0], 1.0, 1.0, true), [[0.0; 4]; 3]);
+    }
 }

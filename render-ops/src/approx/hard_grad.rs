@@ -1,0 +1,216 @@
+//! The exact gradient of the hard render ([`super::render_hard`]: per covered pixel
+//! `I_p = sum_k b_k A[f_k]` from its nearest fragment) with respect to the attributes and,
+//! with the visibility held fixed, the clip positions, in one pass over the fragments.
+//!
+//! `dL/dA[f_k] = sum_p b_k dL/dI_p` is exact. For the positions, `dL/db_k = dL/dI_p . A[f_k]`
+//! goes through the rasterizer's barycentric backward (the interior gradient of
+//! [`crate::raster::rasterize_backward`]), whose per-fragment products are summed per run in
+//! the factored form of [`RunVjp`].
+//!
+//! Deterministic: fragments are visited in fixed chunks of 512 in parallel; within a chunk
+//! each run of consecutive fragments of one face sums its contributions in fragment order, and
+//! every vertex then adds the runs' sums in fragment order (parallel over vertex blocks,
+//! [`scatter_by_vertex`]), so the result is bit-identical for any number of threads.
+
+use autodiff::Real;
+use rayon::prelude::*;
+
+use crate::raster::{FaceVjp, Fragments, RunVjp};
+use crate::scatter::scatter_by_vertex;
+
+/// Fragments per parallel chunk.
+const CHUNK: usize = 512;
+
+/// The gradients of the hard render, in `f64`: `dL/dclip` `[V]` and `dL/dA` `[V * C]`, each
+/// only when asked for.
+pub(crate) struct HardGrad {
+    pub pos: Option<Vec<[f64; 4]>>,
+    pub attr: Option<Vec<f64>>,
+}
+
+/// What one chunk's runs contribute: per run its face, and (when asked for) the run's
+/// `dL/dclip` of the face's vertices and its `dL/dA` of the face's vertices (`3 * C`).
+#[derive(Default)]
+struct Runs {
+    face: Vec<u32>,
+    pos: Vec<[[f64; 4]; 3]>,
+    attr: Vec<f64>,
+}
+
+/// The inputs of one backward.
+struct Inputs<'a, T> {
+    clip: &'a [[T; 4]],
+    faces: &'a [[u32; 3]],
+    frags: &'a Fragments<T>,
+    /// `[V * C]`.
+    attrs: &'a [T],
+    /// `dL/dI`, `[H * W * (C + 1)]` (the last channel, coverage, has no gradient to pass).
+    g: &'a [T],
+    c: usize,
+    persp: bool,
+    need_pos: bool,
+    need_attr: bool,
+}
+
+/// The gradient of the hard render of `attrs` (`[V * C]`) over `frags` (rasterized from
+/// `clip` with `perspective_correct = persp`) for the image gradient `g` (`[H * W * (C + 1)]`).
+/// Only each pixel's nearest fragment is used, as in the render.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn hard_grad<T: Real>(
+    clip: &[[T; 4]],
+    faces: &[[u32; 3]],
+    frags: &Fragments<T>,
+    attrs: &[T],
+    c: usize,
+    g: &[T],
+    persp: bool,
+    need_pos: bool,
+    need_attr: bool,
+) -> HardGrad {
+    let inp = Inputs {
+        clip,
+        faces,
+        frags,
+        attrs,
+        g,
+        c,
+        persp,
+        need_pos,
+        need_attr,
+    };
+    let n = frags.len();
+    let runs: Vec<Runs> = (0..n.div_ceil(CHUNK))
+        .into_par_iter()
+        .map(|ci| {
+            let (i0, i1) = (ci * CHUNK, ((ci + 1) * CHUNK).min(n));
+            match c {
+                3 => chunk_runs::<T, 3>(&inp, i0, i1),
+                1 => chunk_runs::<T, 1>(&inp, i0, i1),
+                _ => chunk_runs::<T, 0>(&inp, i0, i1),
+            }
+        })
+        .collect();
+    let nv = clip.len();
+    let pos = need_pos.then(|| {
+        let mut acc = vec![[0.0f64; 4]; nv];
+        scatter_by_vertex(&mut acc, 1, |vr, out| {
+            for r in &runs {
+                for (fi, g) in r.face.iter().zip(&r.pos) {
+                    for (m, &v) in faces[*fi as usize].iter().enumerate() {
+                        let v = v as usize;
+                        if vr.contains(&v) {
+                            let a = &mut out[v - vr.start];
+                            for q in 0..4 {
+                                a[q] += g[m][q];
+                            }
+                        }
+                    }
+                }
+            }
+        });
+        acc
+    });
+    let attr = need_attr.then(|| {
+        let mut acc = vec![0.0f64; nv * c];
+        if c > 0 {
+            scatter_by_vertex(&mut acc, c, |vr, out| {
+                for r in &runs {
+                    for (fi, g) in r.face.iter().zip(r.attr.chunks_exact(3 * c)) {
+                        for (m, &v) in faces[*fi as usize].iter().enumerate() {
+                            let v = v as usize;
+                            if vr.contains(&v) {
+                                let o = &mut out[(v - vr.start) * c..][..c];
+                                for (o, x) in o.iter_mut().zip(&g[m * c..(m + 1) * c]) {
+                                    *o += x;
+                                }
+                            }
+                        }
+                    }
+                }
+            });
+        }
+        acc
+    });
+    HardGrad { pos, attr }
+}
+
+/// The runs of fragments `i0..i1`, for `C` channels (`C = 0`: `inp.c`, known at run time).
+fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize) -> Runs {
+    let c = if C > 0 { C } else { inp.c };
+    let fr = inp.frags;
+    let (wf, hf) = (fr.width as f64, fr.height as f64);
+    let mut out = Runs::default();
+    // The current run: its face, the face's attributes (`3 * C`), setup and sums.
+    let mut cur: Option<(u32, FaceVjp)> = None;
+    let mut a_face = vec![0.0f64; 3 * c];
+    let mut ga = vec![0.0f64; 3 * c];
+    let mut acc = RunVjp::default();
+    let flush = |out: &mut Runs, cur: &Option<(u32, FaceVjp)>, acc: &RunVjp, ga: &[f64]| {
+        if let Some((fi, fv)) = cur {
+            out.face.push(*fi);
+            if inp.need_pos {
+                out.pos.push(fv.finish(acc, inp.persp));
+            }
+            if inp.need_attr {
+                out.attr.extend_from_slice(ga);
+            }
+        }
+    };
+    let mut p = fr.pixel_of(i0);
+    let (mut row, mut col) = (p / fr.width, p % fr.width);
+    for i in i0..i1 {
+        while fr.offsets[p + 1] as usize <= i {
+            p += 1;
+            col += 1;
+            if col == fr.width {
+                col = 0;
+                row += 1;
+            }
+        }
+        if fr.offsets[p] as usize != i {
+            // Not the pixel's nearest fragment: the render does not show it.
+            continue;
+        }
+        let fi = fr.face[i];
+        if !matches!(&cur, Some((cf, _)) if *cf == fi) {
+            flush(&mut out, &cur, &acc, &ga);
+            let f = inp.faces[fi as usize];
+            let v = f.map(|vi| inp.clip[vi as usize].map(|x| x.to_f64c()));
+            if inp.need_pos {
+                for (k, &vi) in f.iter().enumerate() {
+                    for ch in 0..c {
+                        a_face[k * c + ch] = inp.attrs[vi as usize * c + ch].to_f64c();
+                    }
+                }
+            }
+            cur = Some((fi, FaceVjp::new(&v)));
+            acc = RunVjp::default();
+            ga.fill(0.0);
+        }
+        let gp = &inp.g[p * (c + 1)..][..c];
+        if inp.need_attr {
+            let b = fr.bary[i].map(|x| x.to_f64c());
+            for k in 0..3 {
+                for ch in 0..c {
+                    ga[k * c + ch] += b[k] * gp[ch].to_f64c();
+                }
+            }
+        }
+        if inp.need_pos {
+            let mut gb = [0.0; 3];
+            for (k, gk) in gb.iter_mut().enumerate() {
+                for ch in 0..c {
+                    *gk += gp[ch].to_f64c() * a_face[k * c + ch];
+                }
+            }
+            let px = [
+                2.0 * (col as f64 + 0.5) / wf - 1.0,
+                1.0 - 2.0 * (row as f64 + 0.5) / hf,
+            ];
+            let fv = &cur.as_ref().expect("a run").1;
+            fv.accumulate(&mut acc, px, gb, inp.persp);
+        }
+    }
+    flush(&mut out, &cur, &acc, &ga);
+    out
+}
