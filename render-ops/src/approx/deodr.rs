@@ -351,6 +351,76 @@ fn column_range(e: &Edge, row: f64, sigma: f64, width: usize) -> Option<(usize, 
     (lo <= hi).then_some((lo as usize, hi as usize))
 }
 
+/// `f64` copies of the pixels of one image row that the overdraw touches, made on first touch
+/// from the row's values (`C + 1` per pixel) and written back at the end: rows are converted
+/// only where a ramp reaches.
+struct Touched {
+    /// Per column: index into `xs` of its copy, or `u32::MAX`.
+    slot: Vec<u32>,
+    /// Touched columns, in order of first touch.
+    xs: Vec<u32>,
+    /// Their values, `C + 1` each.
+    vals: Vec<f64>,
+    c1: usize,
+}
+
+impl Touched {
+    fn new(width: usize, c1: usize) -> Self {
+        Touched {
+            slot: vec![u32::MAX; width],
+            xs: Vec::new(),
+            vals: Vec::new(),
+            c1,
+        }
+    }
+
+    /// The copy of column `x` of `src` (the row's values), made on first touch.
+    #[inline]
+    fn get<T: Real>(&mut self, src: &[T], x: usize) -> &mut [f64] {
+        let c1 = self.c1;
+        let k = if self.slot[x] == u32::MAX {
+            let k = self.xs.len();
+            self.slot[x] = k as u32;
+            self.xs.push(x as u32);
+            self.vals
+                .extend(src[x * c1..(x + 1) * c1].iter().map(|v| v.to_f64c()));
+            k
+        } else {
+            self.slot[x] as usize
+        };
+        &mut self.vals[k * c1..(k + 1) * c1]
+    }
+
+    /// Writes the copies into `dst` (the row) when `dst` is given, and forgets them.
+    fn finish<T: Real>(&mut self, dst: Option<&mut [T]>) {
+        let c1 = self.c1;
+        if let Some(dst) = dst {
+            for (k, &x) in self.xs.iter().enumerate() {
+                let x = x as usize;
+                for (o, &v) in dst[x * c1..(x + 1) * c1]
+                    .iter_mut()
+                    .zip(&self.vals[k * c1..(k + 1) * c1])
+                {
+                    *o = T::from_f64c(v);
+                }
+            }
+        }
+        for &x in &self.xs {
+            self.slot[x as usize] = u32::MAX;
+        }
+        self.xs.clear();
+        self.vals.clear();
+    }
+}
+
+/// Per-thread scratch of the backward's rows.
+struct RowScratch {
+    hard: Touched,
+    grad: Touched,
+    layers: Vec<Layer>,
+    saved: Vec<f64>,
+}
+
 /// One overdraw layer of a pixel, recorded for the backward.
 struct Layer {
     x: usize,
@@ -384,13 +454,15 @@ struct DeodrOp<T: Real> {
 }
 
 impl<T: Real> DeodrOp<T> {
-    /// Overdraws row `row` of the image (`out`: that row, `W * (C + 1)` values, hard render on
-    /// entry), calling `layer` after each blend with the pixel value it replaced.
+    /// Overdraws row `row` of the image (`src`: that row, `W * (C + 1)` values, the hard render)
+    /// into the `f64` copies `out` of the pixels it touches, calling `layer` after each blend
+    /// with the pixel value it replaced.
     fn overdraw_row(
         &self,
         attrs: &[f64],
         row: usize,
-        out: &mut [f64],
+        src: &[T],
+        out: &mut Touched,
         mut layer: impl FnMut(Layer, &[f64]),
     ) {
         let c = self.background.len();
@@ -415,7 +487,7 @@ impl<T: Real> DeodrOp<T> {
                 }
                 let tr = s / sigma;
                 let (wt, _) = edge_weights(e.q, t, persp);
-                let px = &mut out[x * (c + 1)..(x + 1) * (c + 1)];
+                let px = out.get(src, x);
                 before.copy_from_slice(px);
                 for ch in 0..c {
                     let a = wt[0] * attrs[e.v[0] as usize * c + ch]
@@ -438,25 +510,39 @@ impl<T: Real> DeodrOp<T> {
     }
 
     /// The backward of one row: from `g` (`dL/dI` of the row's final values) to `dL/dI` of the
-    /// hard render (in place) and the per-edge contributions.
-    fn backward_row(&self, attrs: &[f64], hard_row: &[f64], row: usize, g: &mut [f64]) -> RowGrad {
+    /// hard render (in place) and the per-edge contributions. `hard_row` is the row of the hard
+    /// render.
+    fn backward_row(
+        &self,
+        attrs: &[f64],
+        hard_row: &[T],
+        row: usize,
+        g: &mut [T],
+        sc: &mut RowScratch,
+    ) -> RowGrad {
         let c = self.background.len();
         let sigma = self.settings.overdraw_px;
         let persp = self.settings.perspective_correct;
-        let mut img = hard_row.to_vec();
-        let mut layers: Vec<Layer> = Vec::new();
-        let mut saved: Vec<f64> = Vec::new();
-        self.overdraw_row(attrs, row, &mut img, |mut l, before| {
+        let RowScratch {
+            hard,
+            grad,
+            layers,
+            saved,
+        } = sc;
+        layers.clear();
+        saved.clear();
+        self.overdraw_row(attrs, row, hard_row, hard, |mut l, before| {
             l.before = saved.len();
             saved.extend_from_slice(before);
             layers.push(l);
         });
+        hard.finish::<T>(None);
         let mut out = RowGrad::default();
         let rf = row as f64;
         let mut ga = vec![0.0; c];
         for l in layers.iter().rev() {
             let e = &self.edges.edges[l.edge as usize];
-            let gp = &mut g[l.x * (c + 1)..(l.x + 1) * (c + 1)];
+            let gp = grad.get(g, l.x);
             let before = &saved[l.before..l.before + c + 1];
             let (wt, den) = edge_weights(e.q, l.t, persp);
             // I = T before + (1 - T) A: dL/dA = (1 - T) g, dL/dT = g . (before - A).
@@ -515,6 +601,7 @@ impl<T: Real> DeodrOp<T> {
             out.pos
                 .push((e.v[1], [g1[0], g1[1], -gq1 * e.q[1] * e.q[1]]));
         }
+        grad.finish(Some(g));
         out
     }
 }
@@ -544,20 +631,20 @@ impl<T: Real> Op<T> for DeodrOp<T> {
             crate::rasterize::par_copy(hard.as_slice().expect("standard")),
         )
         .expect("same shape");
-        // Only rows that some ramp reaches change, in f64.
+        // Only rows that some ramp reaches change, and only their touched pixels, in f64.
+        let rw = w * (c + 1);
         img.as_slice_mut()
             .expect("standard")
-            .par_chunks_mut(w * (c + 1))
+            .par_chunks_mut(rw)
             .enumerate()
             .filter(|(row, _)| !self.edges.row(*row).is_empty())
-            .for_each_init(Vec::new, |v, (row, out)| {
-                v.clear();
-                v.extend(out.iter().map(|x| x.to_f64c()));
-                self.overdraw_row(&attrs, row, v, |_, _| {});
-                for (o, &x) in out.iter_mut().zip(v.iter()) {
-                    *o = T::from_f64c(x);
-                }
-            });
+            .for_each_init(
+                || Touched::new(w, c + 1),
+                |t, (row, out)| {
+                    self.overdraw_row(&attrs, row, out, t, |_, _| {});
+                    t.finish(Some(out));
+                },
+            );
         // The backward replays the overdraw from the hard render.
         self.hard = Some(hard);
         Ok(vec![img])
@@ -587,17 +674,20 @@ impl<T: Real> Op<T> for DeodrOp<T> {
                     .enumerate()
                     .filter(|(row, _)| !self.edges.row(*row).is_empty())
                     .map_init(
-                        || (Vec::new(), Vec::new()),
-                        |(h, g64), (row, grow)| {
-                            h.clear();
-                            h.extend(hard[row * rw..(row + 1) * rw].iter().map(|x| x.to_f64c()));
-                            g64.clear();
-                            g64.extend(grow.iter().map(|x| x.to_f64c()));
-                            let out = self.backward_row(&attrs, h, row, g64);
-                            for (o, &x) in grow.iter_mut().zip(g64.iter()) {
-                                *o = T::from_f64c(x);
-                            }
-                            out
+                        || RowScratch {
+                            hard: Touched::new(w, c + 1),
+                            grad: Touched::new(w, c + 1),
+                            layers: Vec::new(),
+                            saved: Vec::new(),
+                        },
+                        |sc, (row, grow)| {
+                            self.backward_row(
+                                &attrs,
+                                &hard[row * rw..(row + 1) * rw],
+                                row,
+                                grow,
+                                sc,
+                            )
                         },
                     )
                     .collect()

@@ -661,11 +661,18 @@ mod tests {
     /// A face without a usable inverse (zero determinant) gets no gradient from either form.
     #[test]
     fn singular_face_gets_no_gradient() {
-        let v = [[0.0, 0.0, 0.0, 1.0], [1.0, 1.0, 0.0, 1.0], [2.0, 2.0, 0.0, 1.0]];
+        let v = [
+            [0.0, 0.0, 0.0, 1.0],
+            [1.0, 1.0, 0.0, 1.0],
+            [2.0, 2.0, 0.0, 1.0],
+        ];
         let fv = FaceVjp::new(&v);
         let mut acc = RunVjp::default();
         fv.accumulate(&mut acc, [0.1, 0.2], [1.0, 2.0, 3.0], true);
         assert_eq!(fv.finish(&acc, true), [[0.0; 4]; 3]);
-        assert_eq!(fv.vjp([0.1, 0.2], [1.0, 2.0, 3.0], 1.0, 1.0, true), [[0.0; 4]; 3]);
+        assert_eq!(
+            fv.vjp([0.1, 0.2], [1.0, 2.0, 3.0], 1.0, 1.0, true),
+            [[0.0; 4]; 3]
+        );
     }
 }
