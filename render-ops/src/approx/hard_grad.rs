@@ -156,8 +156,13 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
             }
         }
     };
+    // Pixel centres in NDC: `x = (col + 0.5) sx - 1`, `y = 1 - (row + 0.5) sy`.
+    let (sx, sy) = (2.0 / wf, 2.0 / hf);
     let mut p = fr.pixel_of(i0);
     let (mut row, mut col) = (p / fr.width, p % fr.width);
+    let mut py = 1.0 - (row as f64 + 0.5) * sy;
+    // `dL/dI` of the current pixel in `f64`.
+    let mut gpf = vec![0.0f64; c];
     for i in i0..i1 {
         while fr.offsets[p + 1] as usize <= i {
             p += 1;
@@ -165,6 +170,7 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
             if col == fr.width {
                 col = 0;
                 row += 1;
+                py = 1.0 - (row as f64 + 0.5) * sy;
             }
         }
         if fr.offsets[p] as usize != i {
@@ -187,12 +193,14 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
             acc = RunVjp::default();
             ga.fill(0.0);
         }
-        let gp = &inp.g[p * (c + 1)..][..c];
+        for (o, x) in gpf.iter_mut().zip(&inp.g[p * (c + 1)..][..c]) {
+            *o = x.to_f64c();
+        }
         if inp.need_attr {
             let b = fr.bary[i].map(|x| x.to_f64c());
             for k in 0..3 {
                 for ch in 0..c {
-                    ga[k * c + ch] += b[k] * gp[ch].to_f64c();
+                    ga[k * c + ch] += b[k] * gpf[ch];
                 }
             }
         }
@@ -200,13 +208,10 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
             let mut gb = [0.0; 3];
             for (k, gk) in gb.iter_mut().enumerate() {
                 for ch in 0..c {
-                    *gk += gp[ch].to_f64c() * a_face[k * c + ch];
+                    *gk += gpf[ch] * a_face[k * c + ch];
                 }
             }
-            let px = [
-                2.0 * (col as f64 + 0.5) / wf - 1.0,
-                1.0 - 2.0 * (row as f64 + 0.5) / hf,
-            ];
+            let px = [(col as f64 + 0.5) * sx - 1.0, py];
             let fv = &cur.as_ref().expect("a run").1;
             fv.accumulate(&mut acc, px, gb, inp.persp);
         }
