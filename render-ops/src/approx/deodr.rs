@@ -107,7 +107,7 @@ pub fn deodr<'t, T: Real>(
         screen,
         edges,
         zbuf,
-        hard: None,
+        hard_px: Vec::new(),
     };
     Ok(clip.tape().apply(op, &[clip, attrs]))
 }
@@ -361,20 +361,45 @@ struct Touched {
     xs: Vec<u32>,
     /// Their values, `C + 1` each.
     vals: Vec<f64>,
+    /// Their values at first touch, when `keep` is set.
+    orig: Vec<f64>,
+    keep: bool,
     c1: usize,
 }
 
+/// The pixels of one row that the overdraw touched: columns in order of first touch, and
+/// `C + 1` values each (the hard render's, kept by the forward for the backward's replay; or
+/// `dL/dI` of the hard render, from the backward).
+#[derive(Default)]
+struct RowPixels {
+    xs: Vec<u32>,
+    vals: Vec<f64>,
+}
+
 impl Touched {
-    fn new(width: usize, c1: usize) -> Self {
+    fn new(width: usize, c1: usize, keep: bool) -> Self {
         Touched {
             slot: vec![u32::MAX; width],
             xs: Vec::new(),
             vals: Vec::new(),
+            orig: Vec::new(),
+            keep,
             c1,
         }
     }
 
-    /// The copy of column `x` of `src` (the row's values), made on first touch.
+    /// Starts from the pixels of `pre` (their values as copies), so that `get` never reads
+    /// the row for them.
+    fn preload(&mut self, pre: &RowPixels) {
+        for (k, &x) in pre.xs.iter().enumerate() {
+            self.slot[x as usize] = k as u32;
+        }
+        self.xs.extend_from_slice(&pre.xs);
+        self.vals.extend_from_slice(&pre.vals);
+    }
+
+    /// The copy of column `x` of `src` (the row's values), made on first touch (`src` is not
+    /// read for preloaded columns).
     #[inline]
     fn get<T: Real>(&mut self, src: &[T], x: usize) -> &mut [f64] {
         let c1 = self.c1;
@@ -382,8 +407,11 @@ impl Touched {
             let k = self.xs.len();
             self.slot[x] = k as u32;
             self.xs.push(x as u32);
-            self.vals
-                .extend(src[x * c1..(x + 1) * c1].iter().map(|v| v.to_f64c()));
+            let v = &src[x * c1..(x + 1) * c1];
+            self.vals.extend(v.iter().map(|v| v.to_f64c()));
+            if self.keep {
+                self.orig.extend(v.iter().map(|v| v.to_f64c()));
+            }
             k
         } else {
             self.slot[x] as usize
@@ -391,8 +419,10 @@ impl Touched {
         &mut self.vals[k * c1..(k + 1) * c1]
     }
 
-    /// Writes the copies into `dst` (the row) when `dst` is given, and forgets them.
-    fn finish<T: Real>(&mut self, dst: Option<&mut [T]>) {
+    /// Writes the copies into `dst` (the row) when `dst` is given, and forgets them. Returns
+    /// the touched pixels with their values at first touch when `keep` is set, else with
+    /// their current values.
+    fn finish<T: Real>(&mut self, dst: Option<&mut [T]>) -> RowPixels {
         let c1 = self.c1;
         if let Some(dst) = dst {
             for (k, &x) in self.xs.iter().enumerate() {
@@ -408,8 +438,16 @@ impl Touched {
         for &x in &self.xs {
             self.slot[x as usize] = u32::MAX;
         }
-        self.xs.clear();
-        self.vals.clear();
+        let vals = if self.keep {
+            self.vals.clear();
+            std::mem::take(&mut self.orig)
+        } else {
+            std::mem::take(&mut self.vals)
+        };
+        RowPixels {
+            xs: std::mem::take(&mut self.xs),
+            vals,
+        }
     }
 }
 
@@ -449,8 +487,9 @@ struct DeodrOp<T: Real> {
     edges: EdgeSet,
     /// NDC depth of each pixel's nearest fragment (infinity where uncovered).
     zbuf: Vec<f64>,
-    /// The hard render under the overdraw, kept by the forward for the backward.
-    hard: Option<Tensor<T>>,
+    /// Per image row, the hard render's values at the pixels the overdraw touched, kept by
+    /// the forward for the backward's replay.
+    hard_px: Vec<RowPixels>,
 }
 
 impl<T: Real> DeodrOp<T> {
@@ -509,17 +548,18 @@ impl<T: Real> DeodrOp<T> {
         }
     }
 
-    /// The backward of one row: from `g` (`dL/dI` of the row's final values) to `dL/dI` of the
-    /// hard render (in place) and the per-edge contributions. `hard_row` is the row of the hard
-    /// render.
+    /// The backward of one row: from `g` (`dL/dI` of the row's final values) to the per-edge
+    /// contributions and `dL/dI` of the hard render at the pixels the overdraw touched (the
+    /// others pass `g` through unchanged). `hard` holds the hard render's values at those
+    /// pixels, kept by the forward.
     fn backward_row(
         &self,
         attrs: &[f64],
-        hard_row: &[T],
+        hard_px: &RowPixels,
         row: usize,
-        g: &mut [T],
+        g: &[T],
         sc: &mut RowScratch,
-    ) -> RowGrad {
+    ) -> (RowGrad, RowPixels) {
         let c = self.background.len();
         let sigma = self.settings.overdraw_px;
         let persp = self.settings.perspective_correct;
@@ -531,7 +571,10 @@ impl<T: Real> DeodrOp<T> {
         } = sc;
         layers.clear();
         saved.clear();
-        self.overdraw_row(attrs, row, hard_row, hard, |mut l, before| {
+        // The replay touches exactly the forward's pixels, all preloaded: the row itself is
+        // not read.
+        hard.preload(hard_px);
+        self.overdraw_row(attrs, row, &[] as &[T], hard, |mut l, before| {
             l.before = saved.len();
             saved.extend_from_slice(before);
             layers.push(l);
@@ -601,8 +644,7 @@ impl<T: Real> DeodrOp<T> {
             out.pos
                 .push((e.v[1], [g1[0], g1[1], -gq1 * e.q[1] * e.q[1]]));
         }
-        grad.finish(Some(g));
-        out
+        (out, grad.finish::<T>(None))
     }
 }
 
@@ -625,28 +667,26 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         let c = self.background.len();
         let w = self.settings.width;
         let attrs: Vec<f64> = inputs[1].iter().map(|x| x.to_f64c()).collect();
-        // The copy in parallel (`hard` is kept for the backward).
-        let mut img = ArrayD::from_shape_vec(
-            hard.raw_dim(),
-            crate::rasterize::par_copy(hard.as_slice().expect("standard")),
-        )
-        .expect("same shape");
-        // Only rows that some ramp reaches change, and only their touched pixels, in f64.
+        // Only rows that some ramp reaches change, and only their touched pixels, in f64 (their
+        // previous values are kept for the backward).
+        let mut img = hard;
         let rw = w * (c + 1);
-        img.as_slice_mut()
+        self.hard_px = img
+            .as_slice_mut()
             .expect("standard")
             .par_chunks_mut(rw)
             .enumerate()
-            .filter(|(row, _)| !self.edges.row(*row).is_empty())
-            .for_each_init(
-                || Touched::new(w, c + 1),
+            .map_init(
+                || Touched::new(w, c + 1, true),
                 |t, (row, out)| {
+                    if self.edges.row(row).is_empty() {
+                        return RowPixels::default();
+                    }
                     self.overdraw_row(&attrs, row, out, t, |_, _| {});
-                    t.finish(Some(out));
+                    t.finish(Some(out))
                 },
-            );
-        // The backward replays the overdraw from the hard render.
-        self.hard = Some(hard);
+            )
+            .collect();
         Ok(vec![img])
     }
 
@@ -655,51 +695,47 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         let c = self.background.len();
         let w = self.settings.width;
         let attrs: Vec<f64> = ctx.inputs[1].iter().map(|x| x.to_f64c()).collect();
-        // dL/dI, replayed through each row's overdraw layers (in f64) to dL/dI_hard; rows no
-        // ramp reaches pass through unchanged.
+        // dL/dI, replayed through each row's overdraw layers (in f64) to dL/dI_hard at the
+        // touched pixels; the others pass through unchanged.
         let g_in = ctx.grad_outputs[0].as_standard_layout();
-        let mut g = ArrayD::from_shape_vec(
-            g_in.raw_dim(),
-            crate::rasterize::par_copy(g_in.as_slice().expect("standard")),
-        )
-        .expect("same shape");
-        let g_hard = g.as_slice_mut().expect("standard");
+        let g_in = g_in.as_slice().expect("standard");
         let rw = w * (c + 1);
-        let contrib: Vec<RowGrad> = match &self.hard {
-            None => Vec::new(),
-            Some(hard) => {
-                let hard = hard.as_slice().expect("standard");
-                g_hard
-                    .par_chunks_mut(rw)
-                    .enumerate()
-                    .filter(|(row, _)| !self.edges.row(*row).is_empty())
-                    .map_init(
-                        || RowScratch {
-                            hard: Touched::new(w, c + 1),
-                            grad: Touched::new(w, c + 1),
-                            layers: Vec::new(),
-                            saved: Vec::new(),
-                        },
-                        |sc, (row, grow)| {
-                            self.backward_row(
-                                &attrs,
-                                &hard[row * rw..(row + 1) * rw],
-                                row,
-                                grow,
-                                sc,
-                            )
-                        },
-                    )
-                    .collect()
+        let rows: Vec<(RowGrad, RowPixels)> = (0..self.hard_px.len())
+            .into_par_iter()
+            .map_init(
+                || RowScratch {
+                    hard: Touched::new(w, c + 1, false),
+                    grad: Touched::new(w, c + 1, false),
+                    layers: Vec::new(),
+                    saved: Vec::new(),
+                },
+                |sc, row| {
+                    if self.edges.row(row).is_empty() {
+                        return Default::default();
+                    }
+                    let g_row = &g_in[row * rw..(row + 1) * rw];
+                    self.backward_row(&attrs, &self.hard_px[row], row, g_row, sc)
+                },
+            )
+            .collect();
+        // The touched pixels' dL/dI_hard in pixel order.
+        let (mut ov_pix, mut ov_val) = (Vec::new(), Vec::new());
+        for (row, (_, px)) in rows.iter().enumerate() {
+            let mut order: Vec<usize> = (0..px.xs.len()).collect();
+            order.sort_unstable_by_key(|&k| px.xs[k]);
+            for k in order {
+                ov_pix.push((row * w + px.xs[k] as usize) as u32);
+                ov_val.extend_from_slice(&px.vals[k * (c + 1)..(k + 1) * (c + 1)]);
             }
-        };
-        let g_hard: &[T] = g_hard;
+        }
+        let contrib: Vec<RowGrad> = rows.into_iter().map(|(r, _)| r).collect();
         let hg = hard_render_grad(
             "deodr",
             ctx,
             &self.faces,
             fr,
-            g_hard,
+            g_in,
+            Some((&ov_pix, &ov_val)),
             &self.settings,
             ctx.needs_grad[0],
         )?;

@@ -46,6 +46,9 @@ struct Inputs<'a, T> {
     attrs: &'a [T],
     /// `dL/dI`, `[H * W * (C + 1)]` (the last channel, coverage, has no gradient to pass).
     g: &'a [T],
+    /// Pixels (increasing) whose `dL/dI` is replaced, and their `C + 1` values each.
+    over_pix: &'a [u32],
+    over_val: &'a [f64],
     c: usize,
     persp: bool,
     need_pos: bool,
@@ -53,8 +56,9 @@ struct Inputs<'a, T> {
 }
 
 /// The gradient of the hard render of `attrs` (`[V * C]`) over `frags` (rasterized from
-/// `clip` with `perspective_correct = persp`) for the image gradient `g` (`[H * W * (C + 1)]`).
-/// Only each pixel's nearest fragment is used, as in the render.
+/// `clip` with `perspective_correct = persp`) for the image gradient `g` (`[H * W * (C + 1)]`),
+/// replaced at the pixels of `over` (increasing pixel indices, `C + 1` values each). Only each
+/// pixel's nearest fragment is used, as in the render.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn hard_grad<T: Real>(
     clip: &[[T; 4]],
@@ -63,6 +67,7 @@ pub(crate) fn hard_grad<T: Real>(
     attrs: &[T],
     c: usize,
     g: &[T],
+    over: (&[u32], &[f64]),
     persp: bool,
     need_pos: bool,
     need_attr: bool,
@@ -73,6 +78,8 @@ pub(crate) fn hard_grad<T: Real>(
         frags,
         attrs,
         g,
+        over_pix: over.0,
+        over_val: over.1,
         c,
         persp,
         need_pos,
@@ -163,6 +170,8 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
     let mut py = 1.0 - (row as f64 + 0.5) * sy;
     // `dL/dI` of the current pixel in `f64`.
     let mut gpf = vec![0.0f64; c];
+    // The next replaced pixel at or after `p`.
+    let mut ov = inp.over_pix.partition_point(|&q| (q as usize) < p);
     for i in i0..i1 {
         while fr.offsets[p + 1] as usize <= i {
             p += 1;
@@ -193,8 +202,15 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
             acc = RunVjp::default();
             ga.fill(0.0);
         }
-        for (o, x) in gpf.iter_mut().zip(&inp.g[p * (c + 1)..][..c]) {
-            *o = x.to_f64c();
+        while ov < inp.over_pix.len() && (inp.over_pix[ov] as usize) < p {
+            ov += 1;
+        }
+        if ov < inp.over_pix.len() && inp.over_pix[ov] as usize == p {
+            gpf.copy_from_slice(&inp.over_val[ov * (c + 1)..][..c]);
+        } else {
+            for (o, x) in gpf.iter_mut().zip(&inp.g[p * (c + 1)..][..c]) {
+                *o = x.to_f64c();
+            }
         }
         if inp.need_attr {
             let b = fr.bary[i].map(|x| x.to_f64c());

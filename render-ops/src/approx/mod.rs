@@ -266,13 +266,17 @@ fn render_hard_rows<T: Real, const C: usize>(
 }
 
 /// The exact gradient of the hard render ([`hard_grad::hard_grad`]) for an op whose inputs
-/// are the clip positions and the attributes: `g` is `dL/dI` (`[H * W * (C + 1)]`).
+/// are the clip positions and the attributes: `g` is `dL/dI` (`[H * W * (C + 1)]`), replaced
+/// at the pixels of `over` (`(pixels, values)`: increasing pixel indices, `C + 1` values each)
+/// by those values.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn hard_render_grad<T: Real>(
     op: &'static str,
     ctx: &BackwardCtx<'_, T>,
     faces: &[[u32; 3]],
     frags: &Fragments<T>,
     g: &[T],
+    over: Option<(&[u32], &[f64])>,
     settings: &ApproxSettings,
     need_pos: bool,
 ) -> autodiff::Result<HardGrad> {
@@ -289,6 +293,7 @@ pub(crate) fn hard_render_grad<T: Real>(
         attrs.as_slice().expect("standard"),
         c,
         g,
+        over.unwrap_or((&[], &[])),
         settings.perspective_correct,
         need_pos,
         ctx.needs_grad[1],
@@ -449,6 +454,7 @@ impl<T: Real> HardRender<T> {
             faces,
             frags,
             g_t,
+            None,
             &self.settings,
             ctx.needs_grad[0],
         )?;

@@ -200,6 +200,7 @@ impl<T: Real> Op<T> for OpenDrOp<T> {
                 &self.hard.faces,
                 fr,
                 g.as_slice().expect("standard"),
+                None,
                 &self.hard.settings,
                 false,
             )?;
