@@ -131,7 +131,8 @@ pub fn as_rows<T>(s: &[T]) -> &[[T; 3]] {
 
 /// Views a flat slice of length `N * M` as `M` arrays of `N` (`N >= 1`).
 pub(crate) fn as_arrays<T, const N: usize>(s: &[T]) -> &[[T; N]] {
-    assert!(N > 0 && s.len() % N == 0);
+    assert!(N > 0);
+    assert_eq!(s.len() % N, 0);
     // SAFETY: [T; N] has the layout of N consecutive T (same alignment), and the length is a
     // multiple of N.
     unsafe { std::slice::from_raw_parts(s.as_ptr() as *const [T; N], s.len() / N) }
@@ -139,7 +140,8 @@ pub(crate) fn as_arrays<T, const N: usize>(s: &[T]) -> &[[T; N]] {
 
 /// Views a flat mutable slice of length `N * M` as `M` arrays of `N` (`N >= 1`).
 pub(crate) fn as_arrays_mut<T, const N: usize>(s: &mut [T]) -> &mut [[T; N]] {
-    assert!(N > 0 && s.len() % N == 0);
+    assert!(N > 0);
+    assert_eq!(s.len() % N, 0);
     // SAFETY: as `as_arrays`; the borrow is exclusive and moves into the result.
     unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut [T; N], s.len() / N) }
 }
