@@ -11,6 +11,7 @@ use rayon::prelude::*;
 
 use crate::error::RenderError;
 use crate::raster::Fragments;
+use crate::rasterize::as_arrays;
 
 struct HardBlendOp<T: Real> {
     fragments: Arc<Fragments<T>>,
@@ -43,6 +44,8 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
         match c {
             3 => blend_rows::<T, 3>(f, cs, &self.background, out),
             1 => blend_rows::<T, 1>(f, cs, &self.background, out),
+            2 => blend_rows::<T, 2>(f, cs, &self.background, out),
+            4 => blend_rows::<T, 4>(f, cs, &self.background, out),
             _ => blend_rows::<T, 0>(f, cs, &self.background, out),
         }
         // SAFETY: `blend_rows` wrote all `n` values of every pixel.
@@ -90,14 +93,41 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
 
 /// The image rows of the hard blend for `C` channels (`C = 0`: `bg.len()`, known only at run
 /// time), in parallel over rows, writing every value of the (uninitialised) image.
+/// `cs` holds `C` values per fragment (`bg.len()` when `C = 0`).
 fn blend_rows<T: Real, const C: usize>(
     f: &Fragments<T>,
     cs: &[T],
     bg: &[T],
     img: &mut [MaybeUninit<T>],
 ) {
-    let c = if C > 0 { C } else { bg.len() };
     let w = f.width;
+    if C > 0 {
+        // Colour rows as `[T; C]` arrays; each pixel reads the offset where the next one
+        // starts once.
+        let cs = as_arrays::<T, C>(cs);
+        let bg: &[T; C] = bg.try_into().expect("C background channels");
+        img.par_chunks_mut(w * (C + 1))
+            .enumerate()
+            .for_each(|(row, out)| {
+                let offs = &f.offsets[row * w..=(row + 1) * w];
+                let mut s = offs[0] as usize;
+                for (px, &e) in out.chunks_exact_mut(C + 1).zip(&offs[1..]) {
+                    let e = e as usize;
+                    let (src, alpha) = if s < e {
+                        (&cs[s], T::one())
+                    } else {
+                        (bg, T::zero())
+                    };
+                    for ch in 0..C {
+                        px[ch].write(src[ch]);
+                    }
+                    px[C].write(alpha);
+                    s = e;
+                }
+            });
+        return;
+    }
+    let c = bg.len();
     img.par_chunks_mut(w * (c + 1))
         .enumerate()
         .for_each(|(row, out)| {

@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use crate::error::RenderError;
 use crate::raster::Fragments;
-use crate::rasterize::{as_rows, Rasterized};
+use crate::rasterize::{as_arrays, as_arrays_mut, as_rows, Rasterized};
 
 struct InterpolateOp<T: Real> {
     fragments: Arc<Fragments<T>>,
@@ -45,6 +45,8 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
         match c {
             3 => interpolate_rows::<T, 3>(&self.fragments.face, &self.faces, a, b, c, o),
             1 => interpolate_rows::<T, 1>(&self.fragments.face, &self.faces, a, b, c, o),
+            2 => interpolate_rows::<T, 2>(&self.fragments.face, &self.faces, a, b, c, o),
+            4 => interpolate_rows::<T, 4>(&self.fragments.face, &self.faces, a, b, c, o),
             _ => interpolate_rows::<T, 0>(&self.fragments.face, &self.faces, a, b, c, o),
         }
         // SAFETY: `interpolate_rows` wrote all `n * c` values.
@@ -106,7 +108,9 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
 }
 
 /// Interpolation of `C` channels (`C = 0`: `c`, known only at run time) into `out` ([N, C],
-/// uninitialised, every value written), in parallel over blocks of fragments.
+/// uninitialised, every value written), in parallel over blocks of fragments. With `C > 0`
+/// attribute rows and output rows are `[T; C]` arrays (one bounds check per vertex, the
+/// channel loop unrolled); every value is the same expression `b0 x0 + b1 x1 + b2 x2`.
 fn interpolate_rows<T: Real, const C: usize>(
     frag_face: &[u32],
     faces: &[[u32; 3]],
@@ -115,7 +119,25 @@ fn interpolate_rows<T: Real, const C: usize>(
     c: usize,
     out: &mut [MaybeUninit<T>],
 ) {
-    let c = if C > 0 { C } else { c };
+    let b3 = as_rows(b);
+    if C > 0 {
+        let a = as_arrays::<T, C>(a);
+        as_arrays_mut::<MaybeUninit<T>, C>(out)
+            .par_chunks_mut(ROWS_PER_TASK)
+            .enumerate()
+            .for_each(|(blk, chunk)| {
+                let i0 = blk * ROWS_PER_TASK;
+                let rows = chunk.iter_mut().zip(&b3[i0..]).zip(&frag_face[i0..]);
+                for ((o, bi), &fi) in rows {
+                    let f = faces[fi as usize];
+                    let (a0, a1, a2) = (&a[f[0] as usize], &a[f[1] as usize], &a[f[2] as usize]);
+                    for ch in 0..C {
+                        o[ch].write(bi[0] * a0[ch] + bi[1] * a1[ch] + bi[2] * a2[ch]);
+                    }
+                }
+            });
+        return;
+    }
     out.par_chunks_mut(ROWS_PER_TASK * c.max(1))
         .enumerate()
         .for_each(|(blk, chunk)| {
@@ -123,7 +145,7 @@ fn interpolate_rows<T: Real, const C: usize>(
             let i0 = blk * ROWS_PER_TASK;
             let rows = chunk
                 .chunks_exact_mut(c)
-                .zip(as_rows(b)[i0..].iter())
+                .zip(b3[i0..].iter())
                 .zip(&frag_face[i0..]);
             for ((orow, bi), &fi) in rows {
                 let f = faces[fi as usize];
@@ -163,4 +185,72 @@ pub fn interpolate<'t, T: Real>(
         faces: r.faces.clone(),
     };
     Ok(attributes.tape().apply(op, &[attributes, r.bary]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::blend::blend_hard;
+    use crate::raster::RasterSettings;
+    use autodiff::Tape;
+
+    /// The constant-channel paths (C = 1..4) and the run-time path (C = 5, 6) of interpolate
+    /// and the hard blend give the defining expressions exactly.
+    #[test]
+    fn channel_paths_match_reference() {
+        let clip = vec![
+            -0.8, -0.7, 0.0, 1.0, 0.9, -0.6, 0.1, 1.0, 0.7, 0.8, 0.2, 1.2, -0.6, 0.9, -0.1, 1.0,
+        ];
+        let faces = Arc::new(vec![[0u32, 1, 2], [0, 2, 3], [1, 3, 0]]);
+        let s = RasterSettings {
+            faces_per_pixel: 2,
+            ..RasterSettings::new(45, 38)
+        };
+        for c in 1..=6usize {
+            let tape = Tape::<f32>::new();
+            let cv = tape.var(
+                ArrayD::from_shape_vec(IxDyn(&[4, 4]), clip.clone()).unwrap(),
+                false,
+            );
+            let r = crate::rasterize::rasterize(cv, faces.clone(), &s).unwrap();
+            let attr: Vec<f32> = (0..4 * c).map(|i| (i as f32 * 0.37).sin()).collect();
+            let av = tape.var(
+                ArrayD::from_shape_vec(IxDyn(&[4, c]), attr.clone()).unwrap(),
+                false,
+            );
+            let out = interpolate(av, &r).unwrap();
+            let ov = out.value().unwrap();
+            let ov = ov.as_slice().unwrap();
+            let fr = &r.fragments;
+            assert!(fr.len() > 500);
+            assert_eq!(ov.len(), fr.len() * c);
+            for i in 0..fr.len() {
+                let f = faces[fr.face[i] as usize].map(|v| v as usize);
+                let b = fr.bary[i];
+                for ch in 0..c {
+                    let want = b[0] * attr[f[0] * c + ch]
+                        + b[1] * attr[f[1] * c + ch]
+                        + b[2] * attr[f[2] * c + ch];
+                    assert_eq!(ov[i * c + ch].to_bits(), want.to_bits());
+                }
+            }
+            let bg: Vec<f32> = (0..c).map(|i| -(i as f32) - 0.5).collect();
+            let img = blend_hard(out, fr, &bg).unwrap().value().unwrap();
+            let img = img.as_slice().unwrap();
+            assert_eq!(img.len(), fr.num_pixels() * (c + 1));
+            for p in 0..fr.num_pixels() {
+                let px = &img[p * (c + 1)..(p + 1) * (c + 1)];
+                match fr.nearest(p) {
+                    Some(x) => {
+                        assert_eq!(&px[..c], &ov[x.index * c..(x.index + 1) * c]);
+                        assert_eq!(px[c], 1.0);
+                    }
+                    None => {
+                        assert_eq!(&px[..c], &bg[..]);
+                        assert_eq!(px[c], 0.0);
+                    }
+                }
+            }
+        }
+    }
 }

@@ -126,9 +126,24 @@ pub(crate) fn par_copy<T: Copy + Send + Sync>(s: &[T]) -> Vec<T> {
 
 /// Views a flat slice of length 3N as N triples.
 pub fn as_rows<T>(s: &[T]) -> &[[T; 3]] {
-    assert_eq!(s.len() % 3, 0);
-    // SAFETY: [T; 3] has the layout of three consecutive T, and the length is a multiple of 3.
-    unsafe { std::slice::from_raw_parts(s.as_ptr() as *const [T; 3], s.len() / 3) }
+    as_arrays::<T, 3>(s)
+}
+
+/// Views a flat slice of length `N * M` as `M` arrays of `N` (`N >= 1`).
+pub(crate) fn as_arrays<T, const N: usize>(s: &[T]) -> &[[T; N]] {
+    assert!(N > 0);
+    assert_eq!(s.len() % N, 0);
+    // SAFETY: [T; N] has the layout of N consecutive T (same alignment), and the length is a
+    // multiple of N.
+    unsafe { std::slice::from_raw_parts(s.as_ptr() as *const [T; N], s.len() / N) }
+}
+
+/// Views a flat mutable slice of length `N * M` as `M` arrays of `N` (`N >= 1`).
+pub(crate) fn as_arrays_mut<T, const N: usize>(s: &mut [T]) -> &mut [[T; N]] {
+    assert!(N > 0);
+    assert_eq!(s.len() % N, 0);
+    // SAFETY: as `as_arrays`; the borrow is exclusive and moves into the result.
+    unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut [T; N], s.len() / N) }
 }
 
 /// Rasterizes clip-space positions [V, 4] with the given faces (hard z-buffer, up to K

@@ -8,6 +8,7 @@ use rayon::prelude::*;
 use super::bin::{Bins, FaceRec};
 use super::clip::Rect;
 use super::edge::{sat, Setup};
+use super::hard::Scratch;
 use super::{RasterError, RasterSettings, TILE_SIZE};
 
 /// Fragments of a rasterized image, packed: only covered pixels hold fragments.
@@ -224,43 +225,59 @@ impl TileFrags {
         (self.row_start[lr + 1] - self.row_start[lr]) as usize
     }
 
-    /// Packs a dense K-buffer (`k` slots per local pixel of record ids, `+inf` depth when
-    /// empty) of the tile `rect`.
-    pub fn pack(depth: &[f64], idx: &[u32], rect: &Rect, k: usize) -> Self {
-        let n = (rect.c1 - rect.c0) as usize + 1;
+    /// Packs the dense K-buffer of the tile `rect` (`k` slots per local pixel of record ids,
+    /// `+inf` depth when empty; see [`Scratch`]) and resets it: only the tested column spans
+    /// of each row are read and refilled with `+inf`, and the spans and counts are cleared.
+    pub fn pack(sc: &mut Scratch, rect: &Rect, k: usize) -> Self {
         let rows = (rect.r1 - rect.r0) as usize + 1;
         let mut out = Self::empty();
-        let total = (0..rows)
-            .map(|lr| {
-                let p = lr * TILE_SIZE * k;
-                depth[p..p + n * k].iter().filter(|d| **d <= 1.0).count()
-            })
-            .sum::<usize>();
-        if total == 0 {
-            return out;
+        let total = sc.filled[..rows].iter().map(|&n| n as usize).sum::<usize>();
+        if total > 0 {
+            out.idx.reserve_exact(total);
+            out.depth.reserve_exact(total);
+            out.counts = vec![0; TILE_SIZE * TILE_SIZE];
         }
-        out.idx.reserve_exact(total);
-        out.depth.reserve_exact(total);
-        out.counts = vec![0; TILE_SIZE * TILE_SIZE];
         for lr in 0..rows {
-            let p = lr * TILE_SIZE;
-            let slots = p * k..(p + n) * k;
-            for ((cnt, dk), ik) in out.counts[p..p + n]
-                .iter_mut()
-                .zip(depth[slots.clone()].chunks_exact(k))
-                .zip(idx[slots].chunks_exact(k))
-            {
-                for (&d, &i) in dk.iter().zip(ik) {
-                    if d > 1.0 {
-                        break;
+            let (c0, c1) = sc.span[lr];
+            if sc.filled[lr] > 0 {
+                let p = lr * TILE_SIZE;
+                let cols = p + c0 as usize..p + c1 as usize;
+                let slots = cols.start * k..cols.end * k;
+                let (dk, ik) = (&sc.depth[slots.clone()], &sc.idx[slots]);
+                if k == 1 {
+                    for ((cnt, &d), &i) in out.counts[cols].iter_mut().zip(dk).zip(ik) {
+                        if d <= 1.0 {
+                            out.idx.push(i);
+                            out.depth.push(d);
+                            *cnt = 1;
+                        }
                     }
-                    out.idx.push(i);
-                    out.depth.push(d);
-                    *cnt += 1;
+                } else {
+                    for ((cnt, dk), ik) in out.counts[cols]
+                        .iter_mut()
+                        .zip(dk.chunks_exact(k))
+                        .zip(ik.chunks_exact(k))
+                    {
+                        for (&d, &i) in dk.iter().zip(ik) {
+                            if d > 1.0 {
+                                break;
+                            }
+                            out.idx.push(i);
+                            out.depth.push(d);
+                            *cnt += 1;
+                        }
+                    }
                 }
             }
+            if c0 < c1 {
+                let p = lr * TILE_SIZE;
+                sc.depth[(p + c0 as usize) * k..(p + c1 as usize) * k].fill(f64::INFINITY);
+            }
+            sc.span[lr] = (TILE_SIZE as u32, 0);
+            sc.filled[lr] = 0;
             out.row_start[lr + 1] = out.idx.len() as u32;
         }
+        debug_assert_eq!(out.idx.len(), total);
         for lr in rows..TILE_SIZE {
             out.row_start[lr + 1] = out.row_start[rows];
         }
@@ -392,12 +409,15 @@ unsafe fn write_run<T: Real>(
             // Screen-space barycentrics lambda_i = e_i w_i / det are affine in the pixel.
             ([e[0] * sw[0], e[1] * sw[1], e[2] * sw[2]], ax, by)
         };
-        // Every value within T's finite range (false for NaN) converts to a finite value; the
-        // saturating path gives the same values wherever the plain conversion is finite.
-        let mut ok = vd.abs() <= m;
-        for i in 0..3 {
-            ok &= (bary[i].abs() <= m) & (dx[i].abs() <= m) & (dy[i].abs() <= m);
-        }
+        // Every value within T's finite range converts to a finite value. One test on the sum
+        // of the magnitudes (each at most the rounded sum, which is NaN or infinite when any
+        // value is) covers all ten; the saturating path, taken also for the rare in-range sets
+        // whose sum exceeds the range, gives the same values wherever the plain conversion is
+        // finite.
+        let mag = (vd.abs() + (bary[0].abs() + bary[1].abs() + bary[2].abs()))
+            + ((dx[0].abs() + dx[1].abs() + dx[2].abs())
+                + (dy[0].abs() + dy[1].abs() + dy[2].abs()));
+        let ok = mag <= m;
         let vals = if ok {
             (
                 bary.map(T::from_f64c),

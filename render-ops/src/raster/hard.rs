@@ -13,10 +13,15 @@ use crate::scatter::scatter_by_vertex;
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
 /// (`local_row * TILE_SIZE + local_col`) of NDC depth (`+inf` when empty) and index into the
-/// tile's setups, nearest first.
-struct Scratch {
-    depth: Vec<f64>,
-    idx: Vec<u32>,
+/// tile's setups, nearest first; per local row, the local columns `span[lr].0..span[lr].1`
+/// that were tested (the only ones that can hold fragments) and the number of filled slots.
+/// Between tiles every slot is empty and every span is empty: [`TileFrags::pack`] reads and
+/// resets only the spans.
+pub(crate) struct Scratch {
+    pub depth: Vec<f64>,
+    pub idx: Vec<u32>,
+    pub span: [(u32, u32); TILE_SIZE],
+    pub filled: [u32; TILE_SIZE],
 }
 
 impl Scratch {
@@ -25,7 +30,17 @@ impl Scratch {
         Self {
             depth: vec![f64::INFINITY; n],
             idx: vec![0; n],
+            span: [(TILE_SIZE as u32, 0); TILE_SIZE],
+            filled: [0; TILE_SIZE],
         }
+    }
+
+    /// Records that local columns `c0..=c1` of local row `lr` are tested.
+    #[inline(always)]
+    fn touch(&mut self, lr: usize, c0: u32, c1: u32) {
+        let sp = &mut self.span[lr];
+        sp.0 = sp.0.min(c0);
+        sp.1 = sp.1.max(c1 + 1);
     }
 }
 
@@ -93,7 +108,6 @@ fn raster_tile(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileFrags {
     if faces.peek().is_none() {
         return TileFrags::empty();
     }
-    sc.depth.fill(f64::INFINITY);
     for id in faces {
         let rec = ctx.bins.rec(id);
         let r = rec.rect.intersect(&rect);
@@ -102,7 +116,7 @@ fn raster_tile(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileFrags {
         }
         z_test_face(&rec.st, &rec.dz, &r, &rect, verts, sc, id, k);
     }
-    TileFrags::pack(&sc.depth, &sc.idx, &rect, k)
+    TileFrags::pack(sc, &rect, k)
 }
 
 /// Tests the pixels of `r` (inside tile `rect`) against one face (setup `st`, NDC depth plane
@@ -128,10 +142,12 @@ fn z_test_face(
             let rf = row as f64;
             let tr = st.row(rf);
             let dr = dz[1] * rf + dz[2];
-            let first = (row - rect.r0) as usize * TILE_SIZE + (r.c0 - rect.c0) as usize;
+            let lr = (row - rect.r0) as usize;
+            sc.touch(lr, r.c0 - rect.c0, r.c1 - rect.c0);
+            let first = lr * TILE_SIZE + (r.c0 - rect.c0) as usize;
             for (j, col) in (r.c0..r.c1 + 1).enumerate() {
                 let p = (first + j) * k;
-                test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p);
+                test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr);
             }
         }
         return;
@@ -198,15 +214,18 @@ fn z_test_face(
         }
         let tr = st.row(rf);
         let dr = dz[1] * rf + dz[2];
-        let first = (row - rect.r0) as usize * TILE_SIZE + (cl - rect.c0) as usize;
+        let lr = (row - rect.r0) as usize;
+        sc.touch(lr, cl - rect.c0, cr - rect.c0);
+        let first = lr * TILE_SIZE + (cl - rect.c0) as usize;
         for (j, col) in (cl..cr + 1).enumerate() {
             let p = (first + j) * k;
-            test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p);
+            test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr);
         }
     }
 }
 
-/// Coverage, depth and K-buffer insertion of one pixel (K-buffer slots `p..p + k`).
+/// Coverage, depth and K-buffer insertion of one pixel (K-buffer slots `p..p + k`, local row
+/// `lr`, whose filled-slot count it keeps).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn test_pixel(
@@ -221,6 +240,7 @@ fn test_pixel(
     col: f64,
     rf: f64,
     p: usize,
+    lr: usize,
 ) {
     let bnd = &st.bnd;
     let e = st.eval(col, tr);
@@ -241,6 +261,8 @@ fn test_pixel(
     if !((-1.0..=1.0).contains(&d) && d < sc.depth[p + k - 1] && e[0] + e[1] + e[2] > 0.0) {
         return;
     }
+    // A slot is filled unless the pixel's last slot was (its fragment then drops out).
+    sc.filled[lr] += (sc.depth[p + k - 1] == f64::INFINITY) as u32;
     // Insertion keeping earlier (lower-index) faces first among equal depths.
     let mut i = p + k - 1;
     while i > p && sc.depth[i - 1] > d {

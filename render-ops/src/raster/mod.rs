@@ -34,7 +34,9 @@
 //!   parallel with rayon. Within a tile each face walks conservative per-row column spans (from
 //!   the edge functions and their error bounds) and only pixels in a span get the exact test, so
 //!   cost grows with covered pixels and faces. Each tile keeps the `K` nearest fragments per pixel
-//!   in a fixed-size per-thread K-buffer and packs their face records and depths; assembly then
+//!   in a fixed-size per-thread K-buffer (which records, per row, the column span it tested
+//!   and how many slots it filled, so that packing reads and resets only those spans) and
+//!   packs their face records and depths; assembly then
 //!   finds where every tile row starts in the packed pixel-order output (prefix sums) and,
 //!   in parallel over tiles (whose face records are a small working set), computes each
 //!   fragment's barycentrics, depths and derivatives straight into the output arrays

@@ -958,6 +958,48 @@ fn random_soups_f64() {
     soups::<f64>();
 }
 
+/// The per-thread K-buffer is reused across tiles and reset only where a tile touched it:
+/// on one thread (every tile through the same buffer), each pixel's fragments are the `K`
+/// nearest (ties: lower face first) of those that each face gives when rasterized alone.
+#[test]
+fn kbuffer_reuse_matches_faces_alone() {
+    let (v, f) = icosphere(2);
+    let m = camera([0.3, 0.2, 2.5], [0.0; 3], 50.0, 1.0, 0.1, 100.0);
+    let mut clip = project::<f64>(&m, &v);
+    let mut faces = f;
+    let (sc, sf) = soup::<f64>(3, 120);
+    let off = clip.len() as u32;
+    clip.extend(sc);
+    faces.extend(sf.iter().map(|t| t.map(|i| i + off)));
+    for (k, cull) in [(1, false), (2, false), (3, true)] {
+        let s = RasterSettings {
+            cull_backfaces: cull,
+            ..settings(97, 70, k)
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let fr = pool.install(|| rasterize(&clip, &faces, &s).unwrap());
+        let mut cand: Vec<Vec<(f64, u32)>> = vec![Vec::new(); fr.num_pixels()];
+        for fi in 0..faces.len() {
+            let one = rasterize(&clip, &faces[fi..fi + 1], &s).unwrap();
+            for (p, c) in cand.iter_mut().enumerate() {
+                c.extend(one.iter_pixel(p).map(|x| (x.depth, fi as u32)));
+            }
+        }
+        let mut total = 0;
+        for (p, c) in cand.iter_mut().enumerate() {
+            c.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            c.truncate(k);
+            let got: Vec<(f64, u32)> = fr.iter_pixel(p).map(|x| (x.depth, x.face)).collect();
+            assert_eq!(&got, c, "pixel {p}, k {k}");
+            total += c.len();
+        }
+        assert!(total > 2000, "{total} fragments");
+    }
+}
+
 // ---------------------------------------------------------------- 5. determinism
 
 fn bits(fr: &Fragments<f64>) -> Vec<u64> {

@@ -1,0 +1,76 @@
+//! Profiling driver for the hard f32 forward pipeline of `benches/raster.rs`'s
+//! `render_hard_f32/forward` (positions -> clip -> rasterize -> interpolate colours -> hard
+//! blend, back-face culling, one thread), on the peers' icosphere and camera:
+//!
+//! ```text
+//! cargo build --release -p tapestry-render-ops --example prof_hard
+//! valgrind --tool=callgrind target/release/examples/prof_hard SIZE ITERS [SUBDIV]
+//! ```
+//!
+//! `SUBDIV` 4 (default) is the 5k-face sphere. Prints ms per iteration and a checksum of the
+//! images (equal checksums: equal images up to summation order). Subtract a run with
+//! `ITERS = 0` (scene setup) from the instruction counts; the checksum itself costs about
+//! 10 instructions per image value.
+use std::sync::Arc;
+
+use autodiff::ndarray::{ArrayD, IxDyn};
+use autodiff::Tape;
+use render_ops::blend::blend_hard;
+use render_ops::camera::Camera;
+use render_ops::interpolate::interpolate;
+use render_ops::mesh::Mesh;
+use render_ops::raster::RasterSettings;
+use render_ops::transform::to_clip;
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let size: usize = args[1].parse().unwrap();
+    let iters: usize = args[2].parse().unwrap();
+    let subdiv: u32 = args.get(3).map_or(4, |s| s.parse().unwrap());
+    let fov = 2.0 * (0.5f64 / 1.1).atan();
+    let m = Camera::perspective_look_at(
+        [0.0, 0.0, -3.0],
+        [0.0; 3],
+        [0.0, -1.0, 0.0],
+        fov,
+        1.0,
+        1.0,
+        100.0,
+    )
+    .unwrap()
+    .view_proj();
+    let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
+    let v = mesh.positions.len();
+    let pos = ArrayD::from_shape_vec(
+        IxDyn(&[v, 3]),
+        mesh.positions.iter().flatten().copied().collect(),
+    )
+    .unwrap();
+    let col = pos.mapv(|x| 0.5 + 0.5 * x);
+    let faces = Arc::new(mesh.faces.clone());
+    let s = RasterSettings {
+        cull_backfaces: true,
+        ..RasterSettings::new(size, size)
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let mut acc = 0.0f64;
+    let t0 = std::time::Instant::now();
+    for _ in 0..iters {
+        pool.install(|| {
+            let tape = Tape::<f32>::new();
+            let p = tape.var(pos.clone(), false);
+            let cv = tape.var(col.clone(), false);
+            let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s).unwrap();
+            let img = blend_hard(interpolate(cv, &r).unwrap(), &r.fragments, &[0.0; 3]).unwrap();
+            let im = img.value().unwrap();
+            acc += im.iter().map(|&x| x as f64).sum::<f64>();
+        });
+    }
+    eprintln!(
+        "{:.3} ms/iter checksum {acc:.6}",
+        t0.elapsed().as_secs_f64() * 1e3 / iters as f64
+    );
+}
