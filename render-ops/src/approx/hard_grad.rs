@@ -30,7 +30,6 @@ pub(crate) struct HardGrad {
 
 /// What one chunk's runs contribute: per run its face, and (when asked for) the run's
 /// `dL/dclip` of the face's vertices and its `dL/dA` of the face's vertices (`3 * C`).
-#[derive(Default)]
 struct Runs {
     face: Vec<u32>,
     pos: Vec<[[f64; 4]; 3]>,
@@ -146,7 +145,13 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
     let c = if C > 0 { C } else { inp.c };
     let fr = inp.frags;
     let (wf, hf) = (fr.width as f64, fr.height as f64);
-    let mut out = Runs::default();
+    // At most one run per fragment: no regrowth.
+    let n = i1 - i0;
+    let mut out = Runs {
+        face: Vec::with_capacity(n),
+        pos: Vec::with_capacity(if inp.need_pos { n } else { 0 }),
+        attr: Vec::with_capacity(if inp.need_attr { 3 * c * n } else { 0 }),
+    };
     // The current run: its face, the face's attributes (`3 * C`), setup and sums.
     let mut cur: Option<(u32, FaceVjp)> = None;
     let mut a_face = vec![0.0f64; 3 * c];
