@@ -217,19 +217,19 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
                 *o = x.to_f64c();
             }
         }
-        if inp.need_attr {
+        if inp.need_attr && c > 0 {
             let b = fr.bary[i].map(|x| x.to_f64c());
-            for k in 0..3 {
-                for ch in 0..c {
-                    ga[k * c + ch] += b[k] * gpf[ch];
+            for (row, bk) in ga.chunks_exact_mut(c).zip(b) {
+                for (o, g) in row.iter_mut().zip(&gpf) {
+                    *o += bk * g;
                 }
             }
         }
         if inp.need_pos {
             let mut gb = [0.0; 3];
-            for (k, gk) in gb.iter_mut().enumerate() {
-                for ch in 0..c {
-                    *gk += gpf[ch] * a_face[k * c + ch];
+            for (gk, a) in gb.iter_mut().zip(a_face.chunks_exact(c.max(1))) {
+                for (g, a) in gpf.iter().zip(a) {
+                    *gk += g * a;
                 }
             }
             let px = [(col as f64 + 0.5) * sx - 1.0, py];
