@@ -336,18 +336,18 @@ impl SoftRasOp {
         sc: &mut Scratch32,
         out: &mut Vec<f64>,
     ) {
-        #[cfg(target_arch = "x86_64")]
-        if use_avx2() {
-            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
-            unsafe { self.tile_forward32_avx2(prep, pxp, t, sc, out) };
-            return;
+        // One build per channel count, so that the per-channel loops unroll and their
+        // accumulators can stay in registers.
+        match prep.channels {
+            0 => self.tile_forward32_c::<0>(prep, pxp, t, sc, out),
+            1 => self.tile_forward32_c::<1>(prep, pxp, t, sc, out),
+            2 => self.tile_forward32_c::<2>(prep, pxp, t, sc, out),
+            3 => self.tile_forward32_c::<3>(prep, pxp, t, sc, out),
+            _ => self.tile_forward32_c::<FAST_MAX_C>(prep, pxp, t, sc, out),
         }
-        self.tile_forward32_impl(prep, pxp, t, sc, out);
     }
 
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn tile_forward32_avx2(
+    fn tile_forward32_c<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
@@ -355,11 +355,30 @@ impl SoftRasOp {
         sc: &mut Scratch32,
         out: &mut Vec<f64>,
     ) {
-        self.tile_forward32_impl(prep, pxp, t, sc, out);
+        #[cfg(target_arch = "x86_64")]
+        if use_avx2() {
+            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
+            unsafe { self.tile_forward32_avx2::<C>(prep, pxp, t, sc, out) };
+            return;
+        }
+        self.tile_forward32_impl::<C>(prep, pxp, t, sc, out);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn tile_forward32_avx2<const C: usize>(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        t: usize,
+        sc: &mut Scratch32,
+        out: &mut Vec<f64>,
+    ) {
+        self.tile_forward32_impl::<C>(prep, pxp, t, sc, out);
     }
 
     #[inline(always)]
-    fn tile_forward32_impl(
+    fn tile_forward32_impl<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
@@ -368,7 +387,8 @@ impl SoftRasOp {
         out: &mut Vec<f64>,
     ) {
         let s = &self.s;
-        let c = prep.channels;
+        let c = C;
+        debug_assert_eq!(prep.channels, C);
         let bins = &prep.bins;
         let tf = &bins.tiles[t];
         let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
@@ -565,18 +585,18 @@ impl SoftRasOp {
         pl: &Planes,
         acc: &mut [f64],
     ) {
-        #[cfg(target_arch = "x86_64")]
-        if use_avx2() {
-            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
-            unsafe { self.face_gradient32_avx2(prep, pxp, fi, pl, acc) };
-            return;
+        // One build per channel count, so that the per-channel loops unroll and their
+        // accumulators can stay in registers.
+        match prep.channels {
+            0 => self.face_gradient32_c::<0>(prep, pxp, fi, pl, acc),
+            1 => self.face_gradient32_c::<1>(prep, pxp, fi, pl, acc),
+            2 => self.face_gradient32_c::<2>(prep, pxp, fi, pl, acc),
+            3 => self.face_gradient32_c::<3>(prep, pxp, fi, pl, acc),
+            _ => self.face_gradient32_c::<FAST_MAX_C>(prep, pxp, fi, pl, acc),
         }
-        self.face_gradient32_impl(prep, pxp, fi, pl, acc);
     }
 
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn face_gradient32_avx2(
+    fn face_gradient32_c<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
@@ -584,11 +604,30 @@ impl SoftRasOp {
         pl: &Planes,
         acc: &mut [f64],
     ) {
-        self.face_gradient32_impl(prep, pxp, fi, pl, acc);
+        #[cfg(target_arch = "x86_64")]
+        if use_avx2() {
+            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
+            unsafe { self.face_gradient32_avx2::<C>(prep, pxp, fi, pl, acc) };
+            return;
+        }
+        self.face_gradient32_impl::<C>(prep, pxp, fi, pl, acc);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn face_gradient32_avx2<const C: usize>(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        fi: usize,
+        pl: &Planes,
+        acc: &mut [f64],
+    ) {
+        self.face_gradient32_impl::<C>(prep, pxp, fi, pl, acc);
     }
 
     #[inline(always)]
-    fn face_gradient32_impl(
+    fn face_gradient32_impl<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
@@ -602,7 +641,8 @@ impl SoftRasOp {
         if rc[0] > rc[1] {
             return;
         }
-        let c = prep.channels;
+        let c = C;
+        debug_assert_eq!(prep.channels, C);
         let stride = 4 + c;
         let f = self.faces[fi];
         let geom = &bins.geoms[fi];
