@@ -127,7 +127,7 @@ impl TileBins {
     }
 
     /// The row spans of face `fi`'s cut-off region ([`FaceSpan`]).
-    #[inline]
+    #[inline(always)]
     pub fn span(&self, fi: usize) -> FaceSpan {
         let g = &self.geoms[fi];
         let ox = self.px0 - g.v[0][0];
@@ -202,20 +202,22 @@ impl TileBins {
     /// The row spans of face `fi`'s cut-off region over its whole box, as `(row, py, a, b)`:
     /// image row, its NDC y and the first and last column that may pass the cut-off (what
     /// the per-face backward passes walk). Empty for a face that was not binned.
-    #[inline]
-    pub fn face_rows(&self, fi: usize) -> impl Iterator<Item = (usize, f64, usize, usize)> + '_ {
+    #[inline(always)]
+    pub fn face_rows(&self, fi: usize) -> FaceRows<'_> {
         let rc = self.rects[fi];
-        let span = self.span(fi);
-        let (c0, c1) = (rc[0] as usize, rc[1] as usize);
-        let rows = if rc[0] <= rc[1] {
-            rc[2] as usize..rc[3] as usize + 1
+        let (row, end) = if rc[0] <= rc[1] {
+            (rc[2] as usize, rc[3] as usize + 1)
         } else {
-            0..0
+            (0, 0)
         };
-        rows.filter_map(move |row| {
-            let py = self.py[row];
-            span.row(py, c0, c1).map(|(a, b)| (row, py, a, b))
-        })
+        FaceRows {
+            py: &self.py,
+            span: self.span(fi),
+            row,
+            end,
+            c0: rc[0].max(0) as usize,
+            c1: rc[1].max(0) as usize,
+        }
     }
 
     /// The part of face `fi`'s box inside tile `t` as (c0, c1, r0, r1), inclusive, in image
@@ -254,23 +256,63 @@ pub(crate) struct FaceSpan {
 
 impl FaceSpan {
     /// The columns within `[c0, c1]` of the row whose centres have NDC y `py`, or `None`.
+    ///
+    /// Per edge with `s > 0` the first column is `ceil(need / s) - 1`, with `s < 0` the last
+    /// is `floor(need / s) + 1`. The quotient is first clamped to `[c0 - 2, c1 + 2]`, which
+    /// changes no result (a bound beyond the box either leaves the box's end or empties the
+    /// span either way), so `ceil` and `floor` are taken by truncation to an integer, without
+    /// a libm call (the default x86-64 target has no rounding instruction).
     #[inline(always)]
     pub fn row(&self, py: f64, c0: usize, c1: usize) -> Option<(usize, usize)> {
-        let (mut lo, mut hi) = (c0 as f64, c1 as f64);
+        let (mut lo, mut hi) = (c0 as i64, c1 as i64);
+        let (fmin, fmax) = (c0 as f64 - 2.0, c1 as f64 + 2.0);
         for k in 0..3 {
             let need = self.a[k] - self.by[k] * py;
             let inv_s = self.inv_s[k];
             if inv_s > 0.0 && inv_s.is_finite() {
-                lo = lo.max((need * inv_s).ceil() - 1.0);
+                // NaN quotients (never expected) clamp to the box's end: no constraint.
+                let x = (need * inv_s).max(fmin).min(fmax);
+                let t = x as i64;
+                // ceil(x) - 1.
+                lo = lo.max(t + ((t as f64) < x) as i64 - 1);
             } else if inv_s < 0.0 && inv_s.is_finite() {
-                hi = hi.min((need * inv_s).floor() + 1.0);
+                let x = (need * inv_s).min(fmax).max(fmin);
+                let t = x as i64;
+                // floor(x) + 1.
+                hi = hi.min(t - ((t as f64) > x) as i64 + 1);
             } else if need > 0.0 && !inv_s.is_finite() {
                 // w_k does not change along the row (s = 0, 1 / s infinite).
                 return None;
             }
         }
-        // NaN bounds (never expected) leave the box as it is: `max`/`min` ignore NaN.
-        (lo <= hi).then(|| (lo.max(c0 as f64) as usize, hi.min(c1 as f64) as usize))
+        (lo <= hi).then_some((lo as usize, hi as usize))
+    }
+}
+
+/// Iterator of [`TileBins::face_rows`].
+pub(crate) struct FaceRows<'a> {
+    py: &'a [f64],
+    span: FaceSpan,
+    row: usize,
+    end: usize,
+    c0: usize,
+    c1: usize,
+}
+
+impl Iterator for FaceRows<'_> {
+    type Item = (usize, f64, usize, usize);
+
+    #[inline(always)]
+    fn next(&mut self) -> Option<Self::Item> {
+        while self.row < self.end {
+            let row = self.row;
+            self.row += 1;
+            let py = self.py[row];
+            if let Some((a, b)) = self.span.row(py, self.c0, self.c1) {
+                return Some((row, py, a, b));
+            }
+        }
+        None
     }
 }
 
@@ -370,14 +412,19 @@ pub(crate) fn check_memory<T: Real>(
     {
         return Ok(());
     }
-    let mut entries = 0usize;
-    for f in faces {
-        if let Some(r) = face_rect(&ndc, &depth, f, width, height, dmax, cull_backfaces) {
-            let tx = (r[1] as usize / TILE - r[0] as usize / TILE + 1) as u128;
-            let ty = (r[3] as usize / TILE - r[2] as usize / TILE + 1) as u128;
-            entries = entries.saturating_add((tx * ty).min(usize::MAX as u128) as usize);
-        }
-    }
+    // Per-face counts in parallel, summed exactly (u128 cannot overflow here).
+    let total: u128 = faces
+        .par_iter()
+        .with_min_len(1024)
+        .map(|f| {
+            face_rect(&ndc, &depth, f, width, height, dmax, cull_backfaces).map_or(0, |r| {
+                let tx = (r[1] as usize / TILE - r[0] as usize / TILE + 1) as u128;
+                let ty = (r[3] as usize / TILE - r[2] as usize / TILE + 1) as u128;
+                tx * ty
+            })
+        })
+        .sum();
+    let entries = total.min(usize::MAX as u128) as usize;
     if entries > MAX_SOFT_BIN_ENTRIES {
         return Err(RasterError::TooLarge {
             request: format!(
@@ -825,6 +872,61 @@ mod tests {
                 assert!((a.t - b.t).abs() <= 1e-9, "{a:?} {b:?}");
             }
         }
+    }
+
+    /// [`FaceSpan::row`] (integer `ceil`/`floor` after clamping) gives the same spans as the
+    /// plain `f64` formula, for random constraints including huge, infinite and NaN
+    /// quotients and row-constant edges.
+    #[test]
+    fn row_span_matches_plain_formula() {
+        fn plain(sp: &FaceSpan, py: f64, c0: usize, c1: usize) -> Option<(usize, usize)> {
+            let (mut lo, mut hi) = (c0 as f64, c1 as f64);
+            for k in 0..3 {
+                let need = sp.a[k] - sp.by[k] * py;
+                let inv_s = sp.inv_s[k];
+                if inv_s > 0.0 && inv_s.is_finite() {
+                    lo = lo.max((need * inv_s).ceil() - 1.0);
+                } else if inv_s < 0.0 && inv_s.is_finite() {
+                    hi = hi.min((need * inv_s).floor() + 1.0);
+                } else if need > 0.0 && !inv_s.is_finite() {
+                    return None;
+                }
+            }
+            (lo <= hi).then(|| (lo.max(c0 as f64) as usize, hi.min(c1 as f64) as usize))
+        }
+        let mut rng = Rng::new(9);
+        let mut nonempty = 0;
+        for case in 0..200_000 {
+            let pick = |rng: &mut Rng, i: usize| match (case + i) % 9 {
+                0 => f64::INFINITY,
+                1 => f64::NEG_INFINITY,
+                2 => f64::NAN,
+                3 => rng.uniform(-1e30, 1e30),
+                4 => 0.0,
+                _ => rng.uniform(-2.0, 2.0),
+            };
+            let mut sp = FaceSpan {
+                a: [0.0; 3],
+                by: [0.0; 3],
+                inv_s: [0.0; 3],
+            };
+            for k in 0..3 {
+                sp.a[k] = rng.uniform(-3.0, 3.0);
+                sp.by[k] = rng.uniform(-2.0, 2.0);
+                sp.inv_s[k] = if case % 5 == 0 {
+                    pick(&mut rng, k)
+                } else {
+                    rng.uniform(-60.0, 60.0)
+                };
+            }
+            let c0 = (rng.uniform(0.0, 40.0)) as usize;
+            let c1 = c0 + (rng.uniform(0.0, 40.0)) as usize;
+            let py = rng.uniform(-1.0, 1.0);
+            let (a, b) = (sp.row(py, c0, c1), plain(&sp, py, c0, c1));
+            assert_eq!(a, b, "{sp:?} py {py} {c0}..={c1}");
+            nonempty += a.is_some() as usize;
+        }
+        assert!(nonempty > 20_000, "{nonempty}");
     }
 
     /// [`FaceSpan::row`] keeps every pixel of a face's box that passes the outside bound (or

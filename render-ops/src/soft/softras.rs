@@ -21,11 +21,12 @@
 //! beyond the cut-off before the exact closest point. `D` and `1 - D` come from one
 //! exponential. Two passes over the tile's faces with per-pixel accumulators (no per-pixel
 //! lists): the first keeps each pair's `D`, `zn` and attribute weights and accumulates `m` and
-//! `P`, the second the blend; each pixel's sums run in face order. The backward runs in
-//! parallel over faces: each face re-evaluates its own pairs and reads what it needs of the
-//! pixel's aggregate (`m`, `Z`, `P`, `I`) from the forward, so neither the scatter into
-//! per-pixel lists nor the aggregate is redone; per-face sums are added to the vertices in
-//! face order (bit-identical for any thread count). Silhouette stability: `P = prod (1 - D)`
+//! `P`, the second the blend; each pixel's sums run in face order. The tiles' results are
+//! then copied into the image and the per-pixel aggregate, image rows in parallel. The
+//! backward runs in parallel over faces: each face re-evaluates its own pairs and reads what
+//! it needs of the pixel's aggregate (`m`, `Z`, `P`, `I`) from the forward, so neither the
+//! scatter into per-pixel lists nor the aggregate is redone; per-face sums are added to the
+//! vertices in face order (bit-identical for any thread count). Silhouette stability: `P = prod (1 - D)`
 //! is a plain product (each factor in `[0, 1]`, so it never overflows and is exactly 0 when
 //! some `D = 1`); where `P >= 1/2` the silhouette is `-expm1(sum log1p(-D))` for full relative
 //! precision of faint coverage. Its gradient is `d(1 - P)/dx_f = P D_f`, with no division by `1 - D_f`.
@@ -584,30 +585,39 @@ impl<T: Real> Op<T> for SoftRasOp {
                     .collect()
             }
         };
+        // Rows in parallel, each from the tiles of its tile row into the image and `pix`.
         let bins = &prep.bins;
-        let mut img = Vec::with_capacity(h * w * (c + 1));
         let pstride = PIX_STATS + c;
+        let mut img = vec![T::from_f64c(0.0); h * w * (c + 1)];
         let mut pix = vec![0.0; h * w * pstride];
-        for row in 0..h {
-            for tx in 0..bins.tiles_x {
-                let tile = &tiles[(row / TILE) * bins.tiles_x + tx];
-                let cols = TILE.min(w - tx * TILE);
-                if tile.is_empty() {
-                    for _ in 0..cols {
-                        img.extend(bg.iter().map(|&v| T::from_f64c(v)));
+        img.par_chunks_mut(w * (c + 1))
+            .zip(pix.par_chunks_mut(w * pstride))
+            .enumerate()
+            .with_min_len(8)
+            .for_each(|(row, (irow, prow))| {
+                for tx in 0..bins.tiles_x {
+                    let tile = &tiles[(row / TILE) * bins.tiles_x + tx];
+                    let cols = TILE.min(w - tx * TILE);
+                    for j in 0..cols {
+                        let col = tx * TILE + j;
+                        let io = &mut irow[col * (c + 1)..(col + 1) * (c + 1)];
+                        if tile.is_empty() {
+                            for (d, &v) in io.iter_mut().zip(&bg) {
+                                *d = T::from_f64c(v);
+                            }
+                            continue;
+                        }
+                        let o = ((row % TILE) * TILE + j) * per;
+                        let v = &tile[o..o + per];
+                        for (d, &v) in io.iter_mut().zip(&v[..c + 1]) {
+                            *d = T::from_f64c(v);
+                        }
+                        let q = col * pstride;
+                        prow[q..q + PIX_STATS].copy_from_slice(&v[c + 1..]);
+                        prow[q + PIX_STATS..q + pstride].copy_from_slice(&v[..c]);
                     }
-                    continue;
                 }
-                for j in 0..cols {
-                    let o = ((row % TILE) * TILE + j) * per;
-                    let v = &tile[o..o + per];
-                    img.extend(v[..c + 1].iter().map(|&v| T::from_f64c(v)));
-                    let q = (row * w + tx * TILE + j) * pstride;
-                    pix[q..q + PIX_STATS].copy_from_slice(&v[c + 1..]);
-                    pix[q + PIX_STATS..q + pstride].copy_from_slice(&v[..c]);
-                }
-            }
-        }
+            });
         prep.pix = pix;
         self.prep = Some(Arc::new(prep));
         Ok(vec![

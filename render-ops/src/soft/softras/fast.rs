@@ -25,8 +25,10 @@
 //! by less than that relative amount times `1 / D` of the largest term, far below `f32`
 //! precision for any `D >= threshold >= 1e-30`.
 
+use rayon::prelude::*;
+
 use super::{Prep, SoftRasOp, PIX_STATS};
-use crate::soft::common::{FaceGeom, TILE};
+use crate::soft::common::{exp, FaceGeom, TILE};
 use crate::soft::simd::{arr3, exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
 
 /// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
@@ -195,7 +197,7 @@ fn pair8(g: &Geom32, qx: F8, qy: f32, valid: M8, k: &K) -> Option<Pair8> {
 
 #[inline(always)]
 fn select_m(m: M8, a: M8, b: M8) -> M8 {
-    (m & a) | (!m & b)
+    m.select(a, b)
 }
 
 /// `(D, 1 - D)` of the kept lanes from one exponential (0 and 1 elsewhere).
@@ -334,18 +336,18 @@ impl SoftRasOp {
         sc: &mut Scratch32,
         out: &mut Vec<f64>,
     ) {
-        #[cfg(target_arch = "x86_64")]
-        if use_avx2() {
-            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
-            unsafe { self.tile_forward32_avx2(prep, pxp, t, sc, out) };
-            return;
+        // One build per channel count, so that the per-channel loops unroll and their
+        // accumulators can stay in registers.
+        match prep.channels {
+            0 => self.tile_forward32_c::<0>(prep, pxp, t, sc, out),
+            1 => self.tile_forward32_c::<1>(prep, pxp, t, sc, out),
+            2 => self.tile_forward32_c::<2>(prep, pxp, t, sc, out),
+            3 => self.tile_forward32_c::<3>(prep, pxp, t, sc, out),
+            _ => self.tile_forward32_c::<FAST_MAX_C>(prep, pxp, t, sc, out),
         }
-        self.tile_forward32_impl(prep, pxp, t, sc, out);
     }
 
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn tile_forward32_avx2(
+    fn tile_forward32_c<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
@@ -353,11 +355,30 @@ impl SoftRasOp {
         sc: &mut Scratch32,
         out: &mut Vec<f64>,
     ) {
-        self.tile_forward32_impl(prep, pxp, t, sc, out);
+        #[cfg(target_arch = "x86_64")]
+        if use_avx2() {
+            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
+            unsafe { self.tile_forward32_avx2::<C>(prep, pxp, t, sc, out) };
+            return;
+        }
+        self.tile_forward32_impl::<C>(prep, pxp, t, sc, out);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn tile_forward32_avx2<const C: usize>(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        t: usize,
+        sc: &mut Scratch32,
+        out: &mut Vec<f64>,
+    ) {
+        self.tile_forward32_impl::<C>(prep, pxp, t, sc, out);
     }
 
     #[inline(always)]
-    fn tile_forward32_impl(
+    fn tile_forward32_impl<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
@@ -366,7 +387,8 @@ impl SoftRasOp {
         out: &mut Vec<f64>,
     ) {
         let s = &self.s;
-        let c = prep.channels;
+        let c = C;
+        debug_assert_eq!(prep.channels, C);
         let bins = &prep.bins;
         let tf = &bins.tiles[t];
         let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
@@ -418,8 +440,12 @@ impl SoftRasOp {
         // no face has zn > eps, u_min still at its start value).
         let u0 = (1.0 - s.eps) as f32;
         for lp in 0..TP {
-            let m = pixel_m(sc.umin[lp], u0, s.eps);
-            let eb = ((s.eps - m) / s.gamma).exp();
+            // exp(0) = 1 where m = eps (no face in front of the background).
+            let eb = if sc.umin[lp] >= u0 {
+                1.0
+            } else {
+                exp((s.eps - pixel_m(sc.umin[lp], u0, s.eps)) / s.gamma)
+            };
             sc.zsum[lp] = eb as f32;
             sc.lsum[lp] = 0.0;
             for ch in 0..c {
@@ -442,9 +468,13 @@ impl SoftRasOp {
             for ck in chunks {
                 let lp = ck.lp;
                 let tt = (F8::load(&sc.umin[lp..]) - ck.u) * inv_gamma;
-                let ef = select(tt.lt(F8::splat(EXP_MIN)), F8::splat(0.0), exp8(tt));
-                let we = ck.dd * ef;
-                // Occluded faces (every e_f 0) add exact zeros: skipped.
+                let under = tt.lt(F8::splat(EXP_MIN));
+                // Occluded faces (every e_f 0) add exact zeros: skipped, exponential included.
+                let we = if (!under).any() {
+                    ck.dd * select(under, F8::splat(0.0), exp8(tt))
+                } else {
+                    F8::splat(0.0)
+                };
                 if we.gt(F8::splat(0.0)).any() {
                     (F8::load(&sc.zsum[lp..]) + we).store(&mut sc.zsum[lp..]);
                     for ch in 0..c {
@@ -504,20 +534,42 @@ impl Planes {
         let pixels = go.len() / (c + 1);
         let n = pixels + LANES;
         let mut v = vec![0.0f32; (c + 4) * n];
-        v[(c + 3) * n..].fill(f32::NEG_INFINITY);
-        for (pi, (g, st)) in go.chunks(c + 1).zip(prep.pix.chunks(pstride)).enumerate() {
-            // Pixels no face reaches (empty tiles leave Z = 0) have no pairs: skipped too.
-            if g.iter().all(|&x| x == 0.0) || !(st[1] > 0.0) {
-                continue;
+        // Blocks of pixels in parallel, each writing its part of every plane (the values
+        // depend on their pixel only).
+        const BLOCK: usize = 4096;
+        let mut blocks: Vec<Vec<&mut [f32]>> = (0..pixels.div_ceil(BLOCK))
+            .map(|_| Vec::with_capacity(c + 4))
+            .collect();
+        for (i, plane) in v.chunks_mut(n).enumerate() {
+            if i == c + 3 {
+                plane.fill(f32::NEG_INFINITY);
             }
-            for ch in 0..c {
-                v[ch * n + pi] = g[ch] as f32;
+            for (b, part) in plane[..pixels].chunks_mut(BLOCK).enumerate() {
+                blocks[b].push(part);
             }
-            v[c * n + pi] = (g[c] * st[2]) as f32;
-            v[(c + 1) * n + pi] = (0..c).map(|ch| g[ch] * st[PIX_STATS + ch]).sum::<f64>() as f32;
-            v[(c + 2) * n + pi] = (1.0 / st[1]) as f32;
-            v[(c + 3) * n + pi] = (1.0 - st[0]) as f32;
         }
+        blocks.into_par_iter().enumerate().for_each(|(b, mut out)| {
+            let p0 = b * BLOCK;
+            for j in 0..out[0].len() {
+                let pi = p0 + j;
+                let g = &go[pi * (c + 1)..(pi + 1) * (c + 1)];
+                let st = &prep.pix[pi * pstride..(pi + 1) * pstride];
+                // Pixels no face reaches (empty tiles leave Z = 0) have no pairs: skipped
+                // too.
+                if g.iter().all(|&x| x == 0.0) || !(st[1] > 0.0) {
+                    continue;
+                }
+                let mut gi = 0.0;
+                for ch in 0..c {
+                    out[ch][j] = g[ch] as f32;
+                    gi += g[ch] * st[PIX_STATS + ch];
+                }
+                out[c][j] = (g[c] * st[2]) as f32;
+                out[c + 1][j] = gi as f32;
+                out[c + 2][j] = (1.0 / st[1]) as f32;
+                out[c + 3][j] = (1.0 - st[0]) as f32;
+            }
+        });
         Self { v, n }
     }
 }
@@ -533,18 +585,18 @@ impl SoftRasOp {
         pl: &Planes,
         acc: &mut [f64],
     ) {
-        #[cfg(target_arch = "x86_64")]
-        if use_avx2() {
-            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
-            unsafe { self.face_gradient32_avx2(prep, pxp, fi, pl, acc) };
-            return;
+        // One build per channel count, so that the per-channel loops unroll and their
+        // accumulators can stay in registers.
+        match prep.channels {
+            0 => self.face_gradient32_c::<0>(prep, pxp, fi, pl, acc),
+            1 => self.face_gradient32_c::<1>(prep, pxp, fi, pl, acc),
+            2 => self.face_gradient32_c::<2>(prep, pxp, fi, pl, acc),
+            3 => self.face_gradient32_c::<3>(prep, pxp, fi, pl, acc),
+            _ => self.face_gradient32_c::<FAST_MAX_C>(prep, pxp, fi, pl, acc),
         }
-        self.face_gradient32_impl(prep, pxp, fi, pl, acc);
     }
 
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn face_gradient32_avx2(
+    fn face_gradient32_c<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
@@ -552,11 +604,30 @@ impl SoftRasOp {
         pl: &Planes,
         acc: &mut [f64],
     ) {
-        self.face_gradient32_impl(prep, pxp, fi, pl, acc);
+        #[cfg(target_arch = "x86_64")]
+        if use_avx2() {
+            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
+            unsafe { self.face_gradient32_avx2::<C>(prep, pxp, fi, pl, acc) };
+            return;
+        }
+        self.face_gradient32_impl::<C>(prep, pxp, fi, pl, acc);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn face_gradient32_avx2<const C: usize>(
+        &self,
+        prep: &Prep,
+        pxp: &[f64],
+        fi: usize,
+        pl: &Planes,
+        acc: &mut [f64],
+    ) {
+        self.face_gradient32_impl::<C>(prep, pxp, fi, pl, acc);
     }
 
     #[inline(always)]
-    fn face_gradient32_impl(
+    fn face_gradient32_impl<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
@@ -570,7 +641,8 @@ impl SoftRasOp {
         if rc[0] > rc[1] {
             return;
         }
-        let c = prep.channels;
+        let c = C;
+        debug_assert_eq!(prep.channels, C);
         let stride = 4 + c;
         let f = self.faces[fi];
         let geom = &bins.geoms[fi];
@@ -615,7 +687,13 @@ impl SoftRasOp {
                 };
                 let (dd, omd) = sigmoid8(&q);
                 let tt = (um - q.u) * inv_gamma;
-                let ef = select(tt.lt(F8::splat(EXP_MIN)) | !q.keep, zero, exp8(tt));
+                let under = tt.lt(F8::splat(EXP_MIN)) | !q.keep;
+                // (The exponential only where some lane's weight is not 0.)
+                let ef = if (!under).any() {
+                    select(under, zero, exp8(tt))
+                } else {
+                    zero
+                };
                 let ga_prod = plane(c, pi);
                 // Where every lane's depth weight is 0 (occluded faces: e_f below e^-87) the
                 // blend terms vanish exactly; only the silhouette term remains.
