@@ -168,7 +168,8 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
         Invalid,
     }
     let kind: Vec<Kind> = faces
-        .iter()
+        .par_iter()
+        .with_min_len(4096)
         .map(|&f| {
             let ok = f.iter().all(|&i| {
                 let i = i as usize;
