@@ -41,9 +41,15 @@
 //! the overdraw layers of each pixel are replayed in reverse, giving `dL/dT`, `dL/dA` per layer
 //! and the gradient reaching the hard image; `T` and `A(t)` are differentiated with respect to
 //! the edge's screen positions (and `w` for the perspective-correct weights), the hard image
-//! through the rasterizer's barycentric backward ([`crate::raster::rasterize_backward`]) and
-//! the attributes exactly. Depth tests, coverage and the edge set are piecewise constant and
-//! carry no gradient.
+//! through the rasterizer's barycentric backward ([`crate::raster::rasterize_backward`]'s
+//! factored per-run form, one pass over the fragments with the attribute gradients) and the
+//! attributes exactly. Depth tests, coverage and the edge set are piecewise constant and carry
+//! no gradient.
+//!
+//! Only the pixels a ramp touches are converted to `f64`: the forward overdraws the hard render
+//! in place and keeps the touched pixels' previous values (a few per silhouette crossing of a
+//! row), from which the backward replays the layers; the gradient reaching the hard render is
+//! passed on as `dL/dI` with those pixels replaced, so no image-sized copy is made.
 //!
 //! Differences from DEODR 0.2.3: DEODR requires back-face culling and differentiates only
 //! screen-space (affine) interpolation; here both follow the settings (set

@@ -34,10 +34,13 @@
 //! moves with the geometry, which they can do for attributes that move with the surface, not
 //! for arbitrary per-fragment shaders or textures.
 //!
-//! All work is in `f64` whatever the scalar. Backward contributions are computed in parallel
-//! over image rows (for `nmr`, over the rows and then the columns) and reduced into the vertex
-//! gradients in a fixed order (pixel order, row and column order), so results are
-//! bit-identical for any number of rayon threads.
+//! All work is in `f64` whatever the scalar. The exact part shared by all four (attribute
+//! gradients and the interior, barycentric position gradient of the hard render) is one pass
+//! over the fragments (`hard_grad`: per run of one face's fragments, in fixed chunks). The
+//! methods' boundary contributions are computed in parallel over image rows (for `nmr`, over
+//! the rows and then the columns). Everything is reduced into the vertex gradients in a fixed
+//! order (fragment, row and column order), so results are bit-identical for any number of
+//! rayon threads.
 
 pub mod deodr;
 mod hard_grad;
