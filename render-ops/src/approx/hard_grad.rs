@@ -10,13 +10,13 @@
 //! Deterministic: fragments are visited in fixed chunks of 512 in parallel; within a chunk
 //! each run of consecutive fragments of one face sums its contributions in fragment order, and
 //! every vertex then adds the runs' sums in fragment order (parallel over vertex blocks,
-//! [`scatter_by_vertex`]), so the result is bit-identical for any number of threads.
+//! [`scatter_face_corners`]), so the result is bit-identical for any number of threads.
 
 use autodiff::Real;
 use rayon::prelude::*;
 
 use crate::raster::{FaceVjp, Fragments, RunVjp};
-use crate::scatter::scatter_by_vertex;
+use crate::scatter::scatter_face_corners;
 
 /// Fragments per parallel chunk.
 const CHUNK: usize = 512;
@@ -99,42 +99,22 @@ pub(crate) fn hard_grad<T: Real>(
     let nv = clip.len();
     let pos = need_pos.then(|| {
         let mut acc = vec![[0.0f64; 4]; nv];
-        scatter_by_vertex(&mut acc, 1, |vr, out| {
-            for r in &runs {
-                for (fi, g) in r.face.iter().zip(&r.pos) {
-                    for (m, &v) in faces[*fi as usize].iter().enumerate() {
-                        let v = v as usize;
-                        if vr.contains(&v) {
-                            let a = &mut out[v - vr.start];
-                            for q in 0..4 {
-                                a[q] += g[m][q];
-                            }
-                        }
-                    }
-                }
-            }
+        scatter_face_corners(acc.as_flattened_mut(), 4, faces, || {
+            runs.iter().flat_map(|r| {
+                r.face
+                    .iter()
+                    .copied()
+                    .zip(r.pos.iter().map(|g| g.as_flattened()))
+            })
         });
         acc
     });
     let attr = need_attr.then(|| {
         let mut acc = vec![0.0f64; nv * c];
-        if c > 0 {
-            scatter_by_vertex(&mut acc, c, |vr, out| {
-                for r in &runs {
-                    for (fi, g) in r.face.iter().zip(r.attr.chunks_exact(3 * c)) {
-                        for (m, &v) in faces[*fi as usize].iter().enumerate() {
-                            let v = v as usize;
-                            if vr.contains(&v) {
-                                let o = &mut out[(v - vr.start) * c..][..c];
-                                for (o, x) in o.iter_mut().zip(&g[m * c..(m + 1) * c]) {
-                                    *o += x;
-                                }
-                            }
-                        }
-                    }
-                }
-            });
-        }
+        scatter_face_corners(&mut acc, c, faces, || {
+            runs.iter()
+                .flat_map(|r| r.face.iter().copied().zip(r.attr.chunks_exact(3 * c)))
+        });
         acc
     });
     HardGrad { pos, attr }

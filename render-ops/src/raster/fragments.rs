@@ -509,6 +509,25 @@ pub(crate) fn assemble<T: Real>(
                     continue;
                 }
                 let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + n];
+                // Writes the run of `cols.len()` fragments of face record `id` whose depths
+                // start at the tile's fragment `i0` and whose output slots start at `p0`.
+                let flush = |id: u32, cols: &[f64], i0: usize, p0: usize| {
+                    // SAFETY: `pos` runs over `tile_pos[t][lr]..` for this tile's
+                    // `row_len(lr)` fragments of the row: a range of `..total` that no other
+                    // tile or row has (prefix sums above), within the capacity; a run covers
+                    // `p0..p0 + cols.len()` of it.
+                    unsafe {
+                        write_run(
+                            bins.rec(id),
+                            cols,
+                            rf,
+                            persp,
+                            &tile.depth[i0..i0 + cols.len()],
+                            out,
+                            p0,
+                        )
+                    }
+                };
                 // Runs of consecutive fragments (in output order) of one face record get
                 // their values together ([`write_run`]); a run never spans rows.
                 let mut cols = [0.0f64; RUN];
@@ -523,18 +542,7 @@ pub(crate) fn assemble<T: Real>(
                         let id = tile.idx[i];
                         if id != run_id || run == RUN {
                             if run > 0 {
-                                // SAFETY: see below.
-                                unsafe {
-                                    write_run(
-                                        bins.rec(run_id),
-                                        &cols[..run],
-                                        rf,
-                                        persp,
-                                        &tile.depth[run_i..run_i + run],
-                                        out,
-                                        run_pos,
-                                    )
-                                };
+                                flush(run_id, &cols[..run], run_i, run_pos);
                             }
                             (run_id, run, run_i, run_pos) = (id, 0, i, pos);
                         }
@@ -545,21 +553,7 @@ pub(crate) fn assemble<T: Real>(
                     }
                 }
                 if run > 0 {
-                    // SAFETY: `pos` runs over `tile_pos[t][lr]..` for this tile's
-                    // `row_len(lr)` fragments of the row: a range of `..total` that no other
-                    // tile or row has (prefix sums above), within the capacity; a run covers
-                    // `run_pos..run_pos + run` of it.
-                    unsafe {
-                        write_run(
-                            bins.rec(run_id),
-                            &cols[..run],
-                            rf,
-                            persp,
-                            &tile.depth[run_i..run_i + run],
-                            out,
-                            run_pos,
-                        )
-                    };
+                    flush(run_id, &cols[..run], run_i, run_pos);
                 }
             }
             i

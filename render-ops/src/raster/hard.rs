@@ -9,7 +9,7 @@ use super::clip::{ceil_u, floor_u, to_screen, Rect};
 use super::edge::Setup;
 use super::fragments::{assemble, Fragments, TileFrags};
 use super::{par_first_index, validate_inputs, RasterError, RasterSettings, TILE_SIZE};
-use crate::scatter::scatter_by_vertex;
+use crate::scatter::scatter_face_corners;
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
 /// (`local_row * TILE_SIZE + local_col`) of NDC depth (`+inf` when empty) and index into the
@@ -404,20 +404,9 @@ pub fn rasterize_backward<T: Real>(
             })
             .collect();
         // Fixed-order reduction: every vertex sums its contributions in fragment order
-        // (parallel over vertex blocks, `scatter_by_vertex`).
-        scatter_by_vertex(&mut acc, 1, |vr, out| {
-            for (fi, g) in runs.iter().flatten() {
-                let f = faces[*fi as usize];
-                for m in 0..3 {
-                    let v = f[m] as usize;
-                    if vr.contains(&v) {
-                        let a = &mut out[v - vr.start];
-                        for q in 0..4 {
-                            a[q] += g[m][q];
-                        }
-                    }
-                }
-            }
+        // (parallel over vertex blocks, `scatter_face_corners`).
+        scatter_face_corners(acc.as_flattened_mut(), 4, faces, || {
+            runs.iter().flatten().map(|(fi, g)| (*fi, g.as_flattened()))
         });
         start = end;
     }

@@ -316,6 +316,39 @@ pub(super) fn padded_px(px: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// Defines the method `$entry(&self, prep, args..)`, which runs `$imp::<C>(prep, args..)` built
+/// once per channel count `C` (0-3, else [`FAST_MAX_C`]), so that the per-channel loops unroll
+/// and their accumulators can stay in registers, and, where the CPU has it, with AVX2 enabled
+/// (the same code: bit-identical to the portable build).
+macro_rules! channel_kernel {
+    ($(#[$doc:meta])* fn $entry:ident => $imp:ident($($a:ident: $t:ty),* $(,)?)) => {
+        $(#[$doc])*
+        pub(super) fn $entry(&self, prep: &Prep, $($a: $t),*) {
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx2")]
+            fn avx2<const C: usize>(op: &SoftRasOp, prep: &Prep, $($a: $t),*) {
+                op.$imp::<C>(prep, $($a),*)
+            }
+            fn pick<const C: usize>(op: &SoftRasOp, prep: &Prep, $($a: $t),*) {
+                #[cfg(target_arch = "x86_64")]
+                if use_avx2() {
+                    // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
+                    unsafe { avx2::<C>(op, prep, $($a),*) };
+                    return;
+                }
+                op.$imp::<C>(prep, $($a),*)
+            }
+            match prep.channels {
+                0 => pick::<0>(self, prep, $($a),*),
+                1 => pick::<1>(self, prep, $($a),*),
+                2 => pick::<2>(self, prep, $($a),*),
+                3 => pick::<3>(self, prep, $($a),*),
+                _ => pick::<FAST_MAX_C>(self, prep, $($a),*),
+            }
+        }
+    };
+}
+
 impl SoftRasOp {
     fn consts(&self) -> K {
         let s = &self.s;
@@ -327,54 +360,14 @@ impl SoftRasOp {
         }
     }
 
-    /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time (same outputs, same layout).
-    pub(super) fn tile_forward32(
-        &self,
-        prep: &Prep,
-        pxp: &[f64],
-        t: usize,
-        sc: &mut Scratch32,
-        out: &mut Vec<f64>,
-    ) {
-        // One build per channel count, so that the per-channel loops unroll and their
-        // accumulators can stay in registers.
-        match prep.channels {
-            0 => self.tile_forward32_c::<0>(prep, pxp, t, sc, out),
-            1 => self.tile_forward32_c::<1>(prep, pxp, t, sc, out),
-            2 => self.tile_forward32_c::<2>(prep, pxp, t, sc, out),
-            3 => self.tile_forward32_c::<3>(prep, pxp, t, sc, out),
-            _ => self.tile_forward32_c::<FAST_MAX_C>(prep, pxp, t, sc, out),
-        }
-    }
-
-    fn tile_forward32_c<const C: usize>(
-        &self,
-        prep: &Prep,
-        pxp: &[f64],
-        t: usize,
-        sc: &mut Scratch32,
-        out: &mut Vec<f64>,
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        if use_avx2() {
-            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
-            unsafe { self.tile_forward32_avx2::<C>(prep, pxp, t, sc, out) };
-            return;
-        }
-        self.tile_forward32_impl::<C>(prep, pxp, t, sc, out);
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn tile_forward32_avx2<const C: usize>(
-        &self,
-        prep: &Prep,
-        pxp: &[f64],
-        t: usize,
-        sc: &mut Scratch32,
-        out: &mut Vec<f64>,
-    ) {
-        self.tile_forward32_impl::<C>(prep, pxp, t, sc, out);
+    channel_kernel! {
+        /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time (same outputs, same layout).
+        fn tile_forward32 => tile_forward32_impl(
+            pxp: &[f64],
+            t: usize,
+            sc: &mut Scratch32,
+            out: &mut Vec<f64>,
+        )
     }
 
     #[inline(always)]
@@ -575,55 +568,15 @@ impl Planes {
 }
 
 impl SoftRasOp {
-    /// [`SoftRasOp::face_gradient`] in `f32`, 8 pixels at a time: per-face sums in `f32`
-    /// vectors, their lanes added in `f64` at the end.
-    pub(super) fn face_gradient32(
-        &self,
-        prep: &Prep,
-        pxp: &[f64],
-        fi: usize,
-        pl: &Planes,
-        acc: &mut [f64],
-    ) {
-        // One build per channel count, so that the per-channel loops unroll and their
-        // accumulators can stay in registers.
-        match prep.channels {
-            0 => self.face_gradient32_c::<0>(prep, pxp, fi, pl, acc),
-            1 => self.face_gradient32_c::<1>(prep, pxp, fi, pl, acc),
-            2 => self.face_gradient32_c::<2>(prep, pxp, fi, pl, acc),
-            3 => self.face_gradient32_c::<3>(prep, pxp, fi, pl, acc),
-            _ => self.face_gradient32_c::<FAST_MAX_C>(prep, pxp, fi, pl, acc),
-        }
-    }
-
-    fn face_gradient32_c<const C: usize>(
-        &self,
-        prep: &Prep,
-        pxp: &[f64],
-        fi: usize,
-        pl: &Planes,
-        acc: &mut [f64],
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        if use_avx2() {
-            // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
-            unsafe { self.face_gradient32_avx2::<C>(prep, pxp, fi, pl, acc) };
-            return;
-        }
-        self.face_gradient32_impl::<C>(prep, pxp, fi, pl, acc);
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn face_gradient32_avx2<const C: usize>(
-        &self,
-        prep: &Prep,
-        pxp: &[f64],
-        fi: usize,
-        pl: &Planes,
-        acc: &mut [f64],
-    ) {
-        self.face_gradient32_impl::<C>(prep, pxp, fi, pl, acc);
+    channel_kernel! {
+        /// [`SoftRasOp::face_gradient`] in `f32`, 8 pixels at a time: per-face sums in `f32`
+        /// vectors, their lanes added in `f64` at the end.
+        fn face_gradient32 => face_gradient32_impl(
+            pxp: &[f64],
+            fi: usize,
+            pl: &Planes,
+            acc: &mut [f64],
+        )
     }
 
     #[inline(always)]
