@@ -442,9 +442,7 @@ impl Touched {
                 }
             }
         }
-        for &x in &self.xs {
-            self.slot[x as usize] = u32::MAX;
-        }
+        self.unmark();
         let vals = if self.keep {
             self.vals.clear();
             std::mem::take(&mut self.orig)
@@ -454,6 +452,20 @@ impl Touched {
         RowPixels {
             xs: std::mem::take(&mut self.xs),
             vals,
+        }
+    }
+
+    /// Forgets the copies, keeping the buffers for the next row.
+    fn reset(&mut self) {
+        self.unmark();
+        self.xs.clear();
+        self.vals.clear();
+        self.orig.clear();
+    }
+
+    fn unmark(&mut self) {
+        for &x in &self.xs {
+            self.slot[x as usize] = u32::MAX;
         }
     }
 }
@@ -586,7 +598,7 @@ impl<T: Real> DeodrOp<T> {
             saved.extend_from_slice(before);
             layers.push(l);
         });
-        hard.finish::<T>(None);
+        hard.reset();
         let mut out = RowGrad::default();
         let rf = row as f64;
         let mut ga = vec![0.0; c];
