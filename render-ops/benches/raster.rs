@@ -3,8 +3,9 @@
 //! Scenes: the peers' benchmark spheres (`Mesh::icosphere`, identical to `peers/scene_gen.py`'s
 //! ico5k and ico80k: 5120 and 81920 faces) and a 1.3M-face sphere (8 subdivisions), seen with
 //! the peers' camera (eye (0, 0, -3), up (0, -1, 0), fov_y 48.888 degrees, near 1, far 100),
-//! f32, K = 1, on rayon pools of 1 and 2 threads, without and with back-face culling (DEODR's
-//! setting). `scripts/bench-raster-peers.sh` runs this bench and DEODR's forward side by side.
+//! f32, K = 1, on rayon pools of 1 and 2 threads, with the default settings and with DEODR's
+//! (back-face culling, no barycentric derivatives). `scripts/bench-raster-peers.sh` runs this
+//! bench and DEODR's forward side by side.
 //! Groups `deodr_f32` and `nmr_f32` time those methods of `render_ops::approx`, forward and
 //! forward + backward, on the 5k and 80k spheres at 256 and 512 pixels.
 //!
@@ -73,11 +74,13 @@ fn bench_forward(c: &mut Criterion) {
     for (subdiv, sizes) in cases {
         let (clip, faces) = scene(subdiv);
         for &size in sizes {
-            // Default settings (both layers of the sphere rasterized), then back-face culling as
-            // in DEODR's peer setting.
+            // Default settings (both layers of the sphere rasterized, barycentric
+            // derivatives), then DEODR's peer setting: back-face culling, and no derivatives
+            // (DEODR computes none).
             for (cull, threads) in [(false, 1), (false, 2), (true, 1), (true, 2)] {
                 let s = RasterSettings {
                     cull_backfaces: cull,
+                    barycentric_derivatives: !cull,
                     ..RasterSettings::new(size, size)
                 };
                 let pool = pool(threads);
@@ -119,7 +122,8 @@ fn bench_backward(c: &mut Criterion) {
 /// The whole hard pipeline as DEODR's `render` does it (world positions -> clip space ->
 /// rasterize -> interpolate vertex colours -> composite over the background), and the same
 /// plus the backward of `sum((image - target)^2)` to positions and colours (DEODR's
-/// `render_backward`), f32, with culling (DEODR's setting) on 1 and 2 threads.
+/// `render_backward`), f32, with culling (DEODR's setting) and without barycentric
+/// derivatives (nothing reads them) on 1 and 2 threads.
 fn bench_pipeline(c: &mut Criterion) {
     let mut g = c.benchmark_group("render_hard_f32");
     g.sample_size(20);
@@ -135,8 +139,10 @@ fn bench_pipeline(c: &mut Criterion) {
         let col = pos.mapv(|x| 0.5 + 0.5 * x);
         let target = ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32);
         let faces = Arc::new(mesh.faces.clone());
+        // Vertex colours need no barycentric derivatives.
         let s = RasterSettings {
             cull_backfaces: true,
+            barycentric_derivatives: false,
             ..RasterSettings::new(size, size)
         };
         for threads in [1, 2] {

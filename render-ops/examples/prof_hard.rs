@@ -50,6 +50,9 @@ fn main() {
     let faces = Arc::new(mesh.faces.clone());
     let s = RasterSettings {
         cull_backfaces: true,
+        // The pipeline (vertex colours, hard blend) needs no barycentric derivatives;
+        // `DERIVS=1` computes them anyway.
+        barycentric_derivatives: std::env::var("DERIVS").is_ok_and(|v| v == "1"),
         ..RasterSettings::new(size, size)
     };
     let pool = rayon::ThreadPoolBuilder::new()

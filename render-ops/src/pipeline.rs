@@ -48,7 +48,8 @@ pub struct Wrt {
 }
 
 impl<T: Real> Scene<T> {
-    /// Raster settings of the scene (size, faces per pixel, culling, interpolation mode).
+    /// Raster settings of the scene (size, faces per pixel, culling, interpolation mode;
+    /// barycentric derivatives for textured scenes).
     pub fn raster_settings(&self) -> RasterSettings {
         let r = &self.desc.raster;
         let mut s = RasterSettings::new(
@@ -58,6 +59,8 @@ impl<T: Real> Scene<T> {
         s.faces_per_pixel = r.effective_faces_per_pixel().unwrap_or(1) as usize;
         s.cull_backfaces = r.cull_backfaces;
         s.perspective_correct = r.perspective_correct;
+        // Only texturing reads the screen-space uv derivatives.
+        s.barycentric_derivatives = self.texture.is_some();
         s
     }
 

@@ -1028,6 +1028,19 @@ fn uv_derivatives_match_pixel_differences_and_gradcheck() {
     )
     .unwrap();
     check("uv_derivatives", rep);
+    // Fragments rasterized without barycentric derivatives: a typed error, not zeros.
+    let tape = Tape::new();
+    let clip = to_clip(tape.constant(rows(&plane.positions)), &cam.view_proj());
+    let s = RasterSettings {
+        barycentric_derivatives: false,
+        ..RasterSettings::new(32, 32)
+    };
+    let r = rasterize(clip, faces.clone(), &s).unwrap();
+    assert!(!r.fragments.is_empty() && !r.fragments.has_derivatives());
+    let err = uv_derivatives(tape.leaf(rows(&plane.uvs)), &r)
+        .value()
+        .unwrap_err();
+    assert!(err.to_string().contains("barycentric_derivatives"), "{err}");
 }
 
 #[test]

@@ -215,7 +215,10 @@ impl<'m> FaceRenderer<'m> {
                 let r = rasterize(
                     clip,
                     self.render_faces.clone(),
-                    &RasterSettings::new(o.width, o.height),
+                    &RasterSettings {
+                        barycentric_derivatives: false,
+                        ..RasterSettings::new(o.width, o.height)
+                    },
                 )?;
                 let n = interpolate(normals, &r)?;
                 let a = interpolate(albedo, &r)?;

@@ -96,9 +96,10 @@ impl ApproxSettings {
         }
     }
 
-    /// The hard rasterizer's settings (one fragment per pixel).
+    /// The hard rasterizer's settings (one fragment per pixel, no barycentric derivatives).
     pub fn raster(&self) -> RasterSettings {
         let mut s = RasterSettings::new(self.width, self.height);
+        s.barycentric_derivatives = false;
         s.perspective_correct = self.perspective_correct;
         s.cull_backfaces = self.cull_backfaces;
         s

@@ -34,9 +34,10 @@ pub struct Fragments<T> {
     pub depth: Vec<T>,
     /// Interpolated `w_clip` (the view-space depth for a perspective camera).
     pub view_depth: Vec<T>,
-    /// Derivative of `bary` per pixel step to the right (`col + 1`).
+    /// Derivative of `bary` per pixel step to the right (`col + 1`); empty when rasterized
+    /// without [`RasterSettings::barycentric_derivatives`] ([`Fragments::has_derivatives`]).
     pub dbary_dx: Vec<[T; 3]>,
-    /// Derivative of `bary` per pixel step down (`row + 1`).
+    /// Derivative of `bary` per pixel step down (`row + 1`); empty like `dbary_dx`.
     pub dbary_dy: Vec<[T; 3]>,
 }
 
@@ -53,10 +54,10 @@ pub struct Fragment<T> {
     pub depth: T,
     /// Interpolated `w_clip`.
     pub view_depth: T,
-    /// `d bary / d col`.
-    pub dbary_dx: [T; 3],
-    /// `d bary / d row`.
-    pub dbary_dy: [T; 3],
+    /// `d bary / d col`, if the fragments carry derivatives.
+    pub dbary_dx: Option<[T; 3]>,
+    /// `d bary / d row`, if the fragments carry derivatives.
+    pub dbary_dy: Option<[T; 3]>,
 }
 
 impl<T: Real> Fragments<T> {
@@ -124,9 +125,15 @@ impl<T: Real> Fragments<T> {
             bary: self.bary[i],
             depth: self.depth[i],
             view_depth: self.view_depth[i],
-            dbary_dx: self.dbary_dx[i],
-            dbary_dy: self.dbary_dy[i],
+            dbary_dx: self.dbary_dx.get(i).copied(),
+            dbary_dy: self.dbary_dy.get(i).copied(),
         }
+    }
+
+    /// Whether `dbary_dx` and `dbary_dy` are present (one entry per fragment), i.e. the
+    /// fragments were rasterized with [`RasterSettings::barycentric_derivatives`].
+    pub fn has_derivatives(&self) -> bool {
+        self.dbary_dx.len() == self.len() && self.dbary_dy.len() == self.len()
     }
 
     /// Fragments of pixel `p`, nearest first.
@@ -163,7 +170,8 @@ impl<T: Real> Fragments<T> {
         self.offsets.partition_point(|&o| o as usize <= i) - 1
     }
 
-    /// Checks the internal consistency of the layout (lengths, monotone offsets, `<= k` per pixel).
+    /// Checks the internal consistency of the layout (lengths, monotone offsets, `<= k` per
+    /// pixel); the derivative arrays are either both present or both empty.
     pub fn validate(&self) -> Result<(), RasterError> {
         let bad = |m: String| Err(RasterError::FragmentsMismatch(m));
         let n = self.len();
@@ -183,15 +191,20 @@ impl<T: Real> Fragments<T> {
         }) {
             return bad(format!("pixel {p} has a bad fragment range"));
         }
-        for (what, len) in [
-            ("bary", self.bary.len()),
-            ("depth", self.depth.len()),
-            ("view_depth", self.view_depth.len()),
-            ("dbary_dx", self.dbary_dx.len()),
-            ("dbary_dy", self.dbary_dy.len()),
+        let derivs = if self.dbary_dx.is_empty() && self.dbary_dy.is_empty() {
+            0
+        } else {
+            n
+        };
+        for (what, len, want) in [
+            ("bary", self.bary.len(), n),
+            ("depth", self.depth.len(), n),
+            ("view_depth", self.view_depth.len(), n),
+            ("dbary_dx", self.dbary_dx.len(), derivs),
+            ("dbary_dy", self.dbary_dy.len(), derivs),
         ] {
-            if len != n {
-                return bad(format!("{what} has length {len}, expected {n}"));
+            if len != want {
+                return bad(format!("{what} has length {len}, expected {want}"));
             }
         }
         Ok(())
@@ -307,27 +320,27 @@ impl<T> OutPtrs<T> {
         unsafe { self.offsets.add(p).write(v) }
     }
 
-    /// Writes fragment slot `i`.
+    /// Writes fragment slot `i` (all but the derivatives).
     ///
     /// # Safety
     /// `i < total`, and no other task writes or reads it.
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn fragment(
-        &self,
-        i: usize,
-        face: u32,
-        bary: [T; 3],
-        depth: T,
-        view_depth: T,
-        dx: [T; 3],
-        dy: [T; 3],
-    ) {
+    unsafe fn fragment(&self, i: usize, face: u32, bary: [T; 3], depth: T, view_depth: T) {
         unsafe {
             self.face.add(i).write(face);
             self.bary.add(i).write(bary);
             self.depth.add(i).write(depth);
             self.view_depth.add(i).write(view_depth);
+        }
+    }
+
+    /// Writes the derivatives of fragment slot `i`.
+    ///
+    /// # Safety
+    /// As [`OutPtrs::fragment`], and the derivative arrays were allocated (with room for `i`).
+    #[inline(always)]
+    unsafe fn derivatives(&self, i: usize, dx: [T; 3], dy: [T; 3]) {
+        unsafe {
             self.dx.add(i).write(dx);
             self.dy.add(i).write(dy);
         }
@@ -341,59 +354,74 @@ unsafe impl<T: Send> Send for OutPtrs<T> {}
 
 /// Longest run of [`write_run`]: a tile row's pixels.
 const RUN: usize = TILE_SIZE;
+// `write_run_avx2` loads whole groups of four columns.
+const _: () = assert!(RUN.is_multiple_of(4));
 
-/// Computes and writes the values of a run of fragments of one face record (output slots
-/// `pos..pos + cols.len()`, at columns `cols` of row `row`, with NDC depths `depth`):
-/// barycentrics, view depth and barycentric derivatives from the record's edge functions.
-///
-/// With `e_i = a_i col + (b_i row + c_i)` ([`Setup::eval`]), `inv = 1 / sum e`: perspective
-/// correct `b_i = e_i inv`, `d b_i / dcol = (a_i - b_i sum a) inv` (`b` for rows); screen-space
-/// `l_i = e_i w_i / det` with the constant derivatives `a_i w_i / det`, `b_i w_i / det`; view
-/// depth `sum_i (e_i inv) w_i` either way. The row part of `e` and the per-face constants are
-/// computed once per run; every fragment's values are the same expressions as computed per
-/// fragment. Every fragment must have `sum e > 0`. Values beyond the range of `T` (only for
-/// slivers at the limits of `f64`) are saturated, NaN to zero, so they are always finite.
-///
-/// # Safety
-/// `cols.len() == depth.len()`, and the slots `pos..pos + cols.len()` lie below the
-/// output's capacity and are written by no other task.
-#[inline(always)]
-unsafe fn write_run<T: Real>(
-    rec: &FaceRec,
-    cols: &[f64],
-    row: f64,
-    persp: bool,
-    depth: &[f64],
-    out: &OutPtrs<T>,
-    pos: usize,
-) {
-    let st: &Setup = &rec.st;
-    // Per run: the row part of the edge functions and the per-face constants.
-    let t = st.row(row);
-    // Only the constants of the mode in use (runs are short for small faces).
-    let (mut sa, mut sb) = (0.0, 0.0);
-    let (mut sw, mut ax, mut by) = ([0.0; 3], [0.0; 3], [0.0; 3]);
-    if persp {
-        (sa, sb) = (st.a[0] + st.a[1] + st.a[2], st.b[0] + st.b[1] + st.b[2]);
-    } else {
-        sw = [
-            st.w[0] * st.inv_det,
-            st.w[1] * st.inv_det,
-            st.w[2] * st.inv_det,
-        ];
-        ax = [st.a[0] * sw[0], st.a[1] * sw[1], st.a[2] * sw[2]];
-        by = [st.b[0] * sw[0], st.b[1] * sw[1], st.b[2] * sw[2]];
+/// Per-run constants of a face record's fragment values ([`RunConsts::values`]).
+struct RunConsts {
+    /// Row part of the edge functions ([`Setup::row`]).
+    t: [f64; 3],
+    /// Perspective-correct mode: `sum a_i`, `sum b_i`.
+    sa: f64,
+    sb: f64,
+    /// Screen-space mode: `w_i / det`, and the constant derivatives `a_i w_i / det`,
+    /// `b_i w_i / det`.
+    sw: [f64; 3],
+    ax: [f64; 3],
+    by: [f64; 3],
+}
+
+impl RunConsts {
+    /// The constants of mode `PERSP` for row `row` of setup `st` (runs are short for small
+    /// faces: only the mode in use is computed).
+    #[inline(always)]
+    fn new<const PERSP: bool>(st: &Setup, row: f64) -> Self {
+        let mut k = RunConsts {
+            t: st.row(row),
+            sa: 0.0,
+            sb: 0.0,
+            sw: [0.0; 3],
+            ax: [0.0; 3],
+            by: [0.0; 3],
+        };
+        if PERSP {
+            (k.sa, k.sb) = (st.a[0] + st.a[1] + st.a[2], st.b[0] + st.b[1] + st.b[2]);
+        } else {
+            k.sw = [
+                st.w[0] * st.inv_det,
+                st.w[1] * st.inv_det,
+                st.w[2] * st.inv_det,
+            ];
+            k.ax = [st.a[0] * k.sw[0], st.a[1] * k.sw[1], st.a[2] * k.sw[2]];
+            k.by = [st.b[0] * k.sw[0], st.b[1] * k.sw[1], st.b[2] * k.sw[2]];
+        }
+        k
     }
-    let m = T::max_value().to_f64c();
-    for (j, (&col, &d)) in cols.iter().zip(depth).enumerate() {
-        let e = st.eval(col, &t);
+
+    /// Barycentrics, view depth and barycentric derivatives of the fragment at column `col`.
+    ///
+    /// With `e_i = a_i col + (b_i row + c_i)` ([`Setup::eval`]), `inv = 1 / sum e`:
+    /// perspective correct `b_i = e_i inv`, `d b_i / dcol = (a_i - b_i sum a) inv` (`b` for
+    /// rows); screen-space `l_i = e_i w_i / det` with the constant derivatives `a_i w_i / det`,
+    /// `b_i w_i / det`; view depth `sum_i (e_i inv) w_i` either way. This exact sequence of
+    /// operations defines the values ([`write_run_avx2`] repeats it lane-wise).
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    fn values<const PERSP: bool>(
+        &self,
+        st: &Setup,
+        col: f64,
+    ) -> ([f64; 3], f64, [f64; 3], [f64; 3]) {
+        let e = st.eval(col, &self.t);
         let inv = 1.0 / (e[0] + e[1] + e[2]);
         let bp = [e[0] * inv, e[1] * inv, e[2] * inv];
         let vd = bp[0] * st.w[0] + bp[1] * st.w[1] + bp[2] * st.w[2];
-        let (bary, dx, dy) = if persp {
+        if PERSP {
             // d(e_i / sum e) = (de_i - b_i d(sum e)) / sum e, de_i/dcol = a_i, de_i/drow = b_i.
+            let (sa, sb) = (self.sa, self.sb);
             (
                 bp,
+                vd,
                 [
                     (st.a[0] - bp[0] * sa) * inv,
                     (st.a[1] - bp[1] * sa) * inv,
@@ -407,39 +435,243 @@ unsafe fn write_run<T: Real>(
             )
         } else {
             // Screen-space barycentrics lambda_i = e_i w_i / det are affine in the pixel.
-            ([e[0] * sw[0], e[1] * sw[1], e[2] * sw[2]], ax, by)
-        };
-        // Every value within T's finite range converts to a finite value. One test on the sum
-        // of the magnitudes (each at most the rounded sum, which is NaN or infinite when any
-        // value is) covers all ten; the saturating path, taken also for the rare in-range sets
-        // whose sum exceeds the range, gives the same values wherever the plain conversion is
-        // finite.
-        let mag = (vd.abs() + (bary[0].abs() + bary[1].abs() + bary[2].abs()))
-            + ((dx[0].abs() + dx[1].abs() + dx[2].abs())
-                + (dy[0].abs() + dy[1].abs() + dy[2].abs()));
-        let ok = mag <= m;
-        let vals = if ok {
+            let sw = self.sw;
             (
-                bary.map(T::from_f64c),
-                T::from_f64c(vd),
-                dx.map(T::from_f64c),
-                dy.map(T::from_f64c),
+                [e[0] * sw[0], e[1] * sw[1], e[2] * sw[2]],
+                vd,
+                self.ax,
+                self.by,
+            )
+        }
+    }
+}
+
+/// Whether every value that a fragment stores (its barycentrics, view depth and, with
+/// `DERIV`, derivatives) lies within `T`'s finite range `m`, from one test on the sum of their
+/// magnitudes (each at most the rounded sum, which is NaN or infinite when any value is).
+/// When it fails, also for the rare in-range sets whose sum exceeds the range, the values are
+/// saturated, which gives the same values wherever the plain conversion is finite.
+#[inline(always)]
+fn in_range<const DERIV: bool>(
+    m: f64,
+    bary: &[f64; 3],
+    vd: f64,
+    dx: &[f64; 3],
+    dy: &[f64; 3],
+) -> bool {
+    let mut mag = vd.abs() + (bary[0].abs() + bary[1].abs() + bary[2].abs());
+    if DERIV {
+        mag +=
+            (dx[0].abs() + dx[1].abs() + dx[2].abs()) + (dy[0].abs() + dy[1].abs() + dy[2].abs());
+    }
+    mag <= m
+}
+
+/// Writes fragment slot `i` of face `face` from `f64` values (NDC depth `d` in `[-1, 1]`),
+/// converted to `T`, saturated unless `in_range` ([`in_range`]); the derivatives only with
+/// `DERIV`.
+///
+/// # Safety
+/// As [`OutPtrs::fragment`]; with `DERIV` the derivative arrays have room for slot `i`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn store<T: Real, const DERIV: bool>(
+    out: &OutPtrs<T>,
+    i: usize,
+    face: u32,
+    bary: [f64; 3],
+    d: f64,
+    vd: f64,
+    dx: [f64; 3],
+    dy: [f64; 3],
+    in_range: bool,
+) {
+    let conv = |x: f64| if in_range { T::from_f64c(x) } else { sat(x) };
+    // SAFETY: the caller's contract.
+    unsafe {
+        out.fragment(i, face, bary.map(conv), T::from_f64c(d), conv(vd));
+        if DERIV {
+            out.derivatives(i, dx.map(conv), dy.map(conv));
+        }
+    }
+}
+
+/// Computes and writes the values of a run of fragments of one face record (output slots
+/// `pos..pos + cols.len()`, at columns `cols` of row `row`, with NDC depths `depth`):
+/// barycentrics, view depth and (with `DERIV`) barycentric derivatives from the record's edge
+/// functions ([`RunConsts::values`]). The row part of `e` and the per-face constants are
+/// computed once per run. Every fragment must have `sum e > 0`. Values beyond the range of `T`
+/// (only for slivers at the limits of `f64`) are saturated, NaN to zero, so they are always
+/// finite.
+///
+/// # Safety
+/// `cols.len() == depth.len()`, and the slots `pos..pos + cols.len()` lie below the
+/// output's capacity and are written by no other task.
+#[inline(always)]
+unsafe fn write_run<T: Real, const PERSP: bool, const DERIV: bool>(
+    rec: &FaceRec,
+    cols: &[f64],
+    row: f64,
+    depth: &[f64],
+    out: &OutPtrs<T>,
+    pos: usize,
+) {
+    let st: &Setup = &rec.st;
+    let k = RunConsts::new::<PERSP>(st, row);
+    let m = T::max_value().to_f64c();
+    for (j, (&col, &d)) in cols.iter().zip(depth).enumerate() {
+        let (bary, vd, dx, dy) = k.values::<PERSP>(st, col);
+        let ok = in_range::<DERIV>(m, &bary, vd, &dx, &dy);
+        // SAFETY: slot `pos + j` is one of this run's (the caller's contract).
+        unsafe { store::<T, DERIV>(out, pos + j, rec.face, bary, d, vd, dx, dy, ok) };
+    }
+}
+
+/// [`write_run`] with AVX2, four fragments at a time, for the first `n` columns of `cols`:
+/// each lane repeats [`RunConsts::values`] and [`in_range`] with the same IEEE operations in
+/// the same order (no fused multiply-adds), so the values are bit-identical.
+///
+/// # Safety
+/// As [`write_run`] for `cols[..n]`, and the CPU supports AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn write_run_avx2<T: Real, const PERSP: bool, const DERIV: bool>(
+    rec: &FaceRec,
+    cols: &[f64; RUN],
+    n: usize,
+    row: f64,
+    depth: &[f64],
+    out: &OutPtrs<T>,
+    pos: usize,
+) {
+    use std::arch::x86_64::*;
+    const L: usize = 4;
+    let st: &Setup = &rec.st;
+    let k = RunConsts::new::<PERSP>(st, row);
+    let m = T::max_value().to_f64c();
+    let v = |x: f64| _mm256_set1_pd(x);
+    let (a, b, t, w) = (st.a.map(v), st.b.map(v), k.t.map(v), st.w.map(v));
+    let (sa, sb, sw) = (v(k.sa), v(k.sb), k.sw.map(v));
+    let one = v(1.0);
+    let abs_mask = _mm256_castsi256_pd(_mm256_set1_epi64x(i64::MAX));
+    let abs = |x: __m256d| _mm256_and_pd(x, abs_mask);
+    let mv = v(m);
+    let mut j = 0;
+    while j < n {
+        let lanes = (n - j).min(L);
+        // SAFETY: `j + 4 <= RUN` (`j < n <= RUN`, both multiples of 4); lanes past the run
+        // read stale columns, computed and never stored.
+        let col = unsafe { _mm256_loadu_pd(cols.as_ptr().add(j)) };
+        let e = [0, 1, 2].map(|i| _mm256_add_pd(_mm256_mul_pd(a[i], col), t[i]));
+        let inv = _mm256_div_pd(one, _mm256_add_pd(_mm256_add_pd(e[0], e[1]), e[2]));
+        let bp = e.map(|ei| _mm256_mul_pd(ei, inv));
+        let vd = _mm256_add_pd(
+            _mm256_add_pd(_mm256_mul_pd(bp[0], w[0]), _mm256_mul_pd(bp[1], w[1])),
+            _mm256_mul_pd(bp[2], w[2]),
+        );
+        let (bary, dx, dy) = if PERSP {
+            (
+                bp,
+                [0, 1, 2]
+                    .map(|i| _mm256_mul_pd(_mm256_sub_pd(a[i], _mm256_mul_pd(bp[i], sa)), inv)),
+                [0, 1, 2]
+                    .map(|i| _mm256_mul_pd(_mm256_sub_pd(b[i], _mm256_mul_pd(bp[i], sb)), inv)),
             )
         } else {
-            (bary.map(sat), sat(vd), dx.map(sat), dy.map(sat))
-        };
-        // SAFETY: slot `pos + j` is one of this run's (the caller's contract).
-        unsafe {
-            out.fragment(
-                pos + j,
-                rec.face,
-                vals.0,
-                T::from_f64c(d),
-                vals.1,
-                vals.2,
-                vals.3,
+            (
+                [0, 1, 2].map(|i| _mm256_mul_pd(e[i], sw[i])),
+                k.ax.map(v),
+                k.by.map(v),
             )
         };
+        let sum3 = |x: [__m256d; 3]| _mm256_add_pd(_mm256_add_pd(abs(x[0]), abs(x[1])), abs(x[2]));
+        let mut mag = _mm256_add_pd(abs(vd), sum3(bary));
+        if DERIV {
+            mag = _mm256_add_pd(mag, _mm256_add_pd(sum3(dx), sum3(dy)));
+        }
+        let ok = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(mag, mv));
+        let spill = |x: __m256d| {
+            let mut r = [0.0; L];
+            // SAFETY: `r` holds four f64.
+            unsafe { _mm256_storeu_pd(r.as_mut_ptr(), x) };
+            r
+        };
+        let (bary, vd) = (bary.map(spill), spill(vd));
+        let (dx, dy) = if DERIV {
+            (dx.map(spill), dy.map(spill))
+        } else {
+            ([[0.0; L]; 3], [[0.0; L]; 3])
+        };
+        let face = rec.face;
+        let pick = |x: &[[f64; L]; 3], l: usize| [x[0][l], x[1][l], x[2][l]];
+        if ok == (1 << L) - 1 {
+            for l in 0..lanes {
+                // SAFETY: slot `pos + j + l` is one of this run's (the caller's contract).
+                unsafe {
+                    let (i, conv) = (pos + j + l, |x: [f64; 3]| x.map(T::from_f64c));
+                    out.fragment(
+                        i,
+                        face,
+                        conv(pick(&bary, l)),
+                        T::from_f64c(depth[j + l]),
+                        T::from_f64c(vd[l]),
+                    );
+                    if DERIV {
+                        out.derivatives(i, conv(pick(&dx, l)), conv(pick(&dy, l)));
+                    }
+                }
+            }
+        } else {
+            for l in 0..lanes {
+                let (b, d, x, y) = (pick(&bary, l), depth[j + l], pick(&dx, l), pick(&dy, l));
+                let ok = ok & (1 << l) != 0;
+                // SAFETY: slot `pos + j + l` is one of this run's (the caller's contract).
+                unsafe { store::<T, DERIV>(out, pos + j + l, face, b, d, vd[l], x, y, ok) };
+            }
+        }
+        j += L;
+    }
+}
+
+/// [`write_run`] (or [`write_run_avx2`] when `avx2`) for the mode `persp` / `derivs`, on
+/// the first `n` columns of `cols`.
+///
+/// # Safety
+/// As [`write_run`] for `cols[..n]`; `avx2` only when the CPU supports AVX2; with `derivs` the derivative
+/// arrays have room for the run's slots.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn write_run_dispatch<T: Real>(
+    avx2: bool,
+    persp: bool,
+    derivs: bool,
+    rec: &FaceRec,
+    cols: &[f64; RUN],
+    n: usize,
+    row: f64,
+    depth: &[f64],
+    out: &OutPtrs<T>,
+    pos: usize,
+) {
+    macro_rules! go {
+        ($p:literal, $d:literal) => {{
+            #[cfg(target_arch = "x86_64")]
+            if avx2 {
+                // SAFETY: the caller's contract.
+                return unsafe { write_run_avx2::<T, $p, $d>(rec, cols, n, row, depth, out, pos) };
+            }
+            // SAFETY: the caller's contract.
+            unsafe { write_run::<T, $p, $d>(rec, &cols[..n], row, depth, out, pos) }
+        }};
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = avx2;
+    match (persp, derivs) {
+        (true, true) => go!(true, true),
+        (true, false) => go!(true, false),
+        (false, true) => go!(false, true),
+        (false, false) => go!(false, false),
     }
 }
 
@@ -453,9 +685,10 @@ pub(crate) fn assemble<T: Real>(
     tiles: Vec<TileFrags>,
     bins: &Bins,
     s: &RasterSettings,
+    avx2: bool,
 ) -> Result<Fragments<T>, RasterError> {
     let (width, height, k) = (s.width, s.height, s.faces_per_pixel);
-    let persp = s.perspective_correct;
+    let (persp, derivs) = (s.perspective_correct, s.barycentric_derivatives);
     let tx_n = bins.tiles_x;
     // Output position of each tile's local rows, in row-major pixel order.
     let mut tile_pos = vec![[0usize; TILE_SIZE]; tiles.len()];
@@ -476,8 +709,9 @@ pub(crate) fn assemble<T: Real>(
     let mut bary = Vec::<[T; 3]>::with_capacity(total);
     let mut depth = Vec::<T>::with_capacity(total);
     let mut view_depth = Vec::<T>::with_capacity(total);
-    let mut dbary_dx = Vec::<[T; 3]>::with_capacity(total);
-    let mut dbary_dy = Vec::<[T; 3]>::with_capacity(total);
+    let nd = if derivs { total } else { 0 };
+    let mut dbary_dx = Vec::<[T; 3]>::with_capacity(nd);
+    let mut dbary_dy = Vec::<[T; 3]>::with_capacity(nd);
     let out = OutPtrs {
         offsets: offsets.as_mut_ptr(),
         face: face.as_mut_ptr(),
@@ -511,18 +745,23 @@ pub(crate) fn assemble<T: Real>(
                 let counts = &tile.counts[lr * TILE_SIZE..lr * TILE_SIZE + n];
                 // Writes the run of `cols.len()` fragments of face record `id` whose depths
                 // start at the tile's fragment `i0` and whose output slots start at `p0`.
-                let flush = |id: u32, cols: &[f64], i0: usize, p0: usize| {
+                let flush = |id: u32, cols: &[f64; RUN], n: usize, i0: usize, p0: usize| {
                     // SAFETY: `pos` runs over `tile_pos[t][lr]..` for this tile's
                     // `row_len(lr)` fragments of the row: a range of `..total` that no other
                     // tile or row has (prefix sums above), within the capacity; a run covers
-                    // `p0..p0 + cols.len()` of it.
+                    // `p0..p0 + n` of it.
+                    // `avx2` only with CPU support (`rasterize_with`), and the derivative arrays were allocated
+                    // when `derivs`.
                     unsafe {
-                        write_run(
+                        write_run_dispatch(
+                            avx2,
+                            persp,
+                            derivs,
                             bins.rec(id),
                             cols,
+                            n,
                             rf,
-                            persp,
-                            &tile.depth[i0..i0 + cols.len()],
+                            &tile.depth[i0..i0 + n],
                             out,
                             p0,
                         )
@@ -542,7 +781,7 @@ pub(crate) fn assemble<T: Real>(
                         let id = tile.idx[i];
                         if id != run_id || run == RUN {
                             if run > 0 {
-                                flush(run_id, &cols[..run], run_i, run_pos);
+                                flush(run_id, &cols, run, run_i, run_pos);
                             }
                             (run_id, run, run_i, run_pos) = (id, 0, i, pos);
                         }
@@ -553,7 +792,7 @@ pub(crate) fn assemble<T: Real>(
                     }
                 }
                 if run > 0 {
-                    flush(run_id, &cols[..run], run_i, run_pos);
+                    flush(run_id, &cols, run, run_i, run_pos);
                 }
             }
             i
@@ -571,8 +810,8 @@ pub(crate) fn assemble<T: Real>(
         bary.set_len(total);
         depth.set_len(total);
         view_depth.set_len(total);
-        dbary_dx.set_len(total);
-        dbary_dy.set_len(total);
+        dbary_dx.set_len(nd);
+        dbary_dy.set_len(nd);
     }
     Ok(Fragments {
         width,

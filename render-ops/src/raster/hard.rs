@@ -10,6 +10,7 @@ use super::edge::Setup;
 use super::fragments::{assemble, Fragments, TileFrags};
 use super::{par_first_index, validate_inputs, RasterError, RasterSettings, TILE_SIZE};
 use crate::scatter::scatter_face_corners;
+use crate::soft::simd::use_avx2;
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
 /// (`local_row * TILE_SIZE + local_col`) of NDC depth (`+inf` when empty) and index into the
@@ -26,7 +27,8 @@ pub(crate) struct Scratch {
 
 impl Scratch {
     fn new(k: usize) -> Self {
-        let n = TILE_SIZE * TILE_SIZE * k;
+        // Padding for the lane groups of `z_test_span_k1` (stays empty).
+        let n = TILE_SIZE * TILE_SIZE * k + SPAN_LANES;
         Self {
             depth: vec![f64::INFINITY; n],
             idx: vec![0; n],
@@ -49,6 +51,8 @@ struct Ctx<'a> {
     verts: &'a [[f64; 4]],
     bins: &'a Bins,
     s: &'a RasterSettings,
+    /// Whether the AVX2 span test may run ([`use_avx2`]).
+    avx2: bool,
 }
 
 /// Rasterizes clip-space triangles into the `K` nearest fragments per pixel.
@@ -70,6 +74,19 @@ pub fn rasterize<T: Real>(
     faces: &[[u32; 3]],
     s: &RasterSettings,
 ) -> Result<Fragments<T>, RasterError> {
+    rasterize_with(clip, faces, s, use_avx2())
+}
+
+/// [`rasterize`], with the AVX2 kernels (the K = 1 span test and assembly) when `avx2`
+/// (bit-identical results either way).
+pub(crate) fn rasterize_with<T: Real>(
+    clip: &[[T; 4]],
+    faces: &[[u32; 3]],
+    s: &RasterSettings,
+    avx2: bool,
+) -> Result<Fragments<T>, RasterError> {
+    // The AVX2 kernels only where the CPU has them.
+    let avx2 = avx2 && use_avx2();
     validate_inputs(clip, faces, s)?;
     autodiff::tune_malloc();
     let nv = clip.len();
@@ -88,6 +105,7 @@ pub fn rasterize<T: Real>(
         verts: &verts,
         bins: &bins,
         s,
+        avx2,
     };
     let tiles: Vec<TileFrags> = (0..bins.num_tiles())
         .into_par_iter()
@@ -96,7 +114,7 @@ pub fn rasterize<T: Real>(
             |sc, t| raster_tile(t, &ctx, sc),
         )
         .collect();
-    assemble(tiles, &bins, s)
+    assemble(tiles, &bins, s, avx2)
 }
 
 /// Z-buffers the faces binned to tile `t` and packs the surviving fragments.
@@ -114,7 +132,7 @@ fn raster_tile(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileFrags {
         if r.is_empty() {
             continue;
         }
-        z_test_face(&rec.st, &rec.dz, &r, &rect, verts, sc, id, k);
+        z_test_face(&rec.st, &rec.dz, &r, &rect, verts, sc, id, k, ctx.avx2);
     }
     TileFrags::pack(sc, &rect, k)
 }
@@ -122,7 +140,7 @@ fn raster_tile(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileFrags {
 /// Tests the pixels of `r` (inside tile `rect`) against one face (setup `st`, NDC depth plane
 /// `dz`, [`Setup::depth_plane`]) and inserts its fragments into the K-buffer under record id
 /// `li`.
-#[inline]
+#[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn z_test_face(
     st: &Setup,
@@ -133,7 +151,10 @@ fn z_test_face(
     sc: &mut Scratch,
     li: u32,
     k: usize,
+    avx2: bool,
 ) {
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = avx2;
     // The near and far planes are the per-fragment test -1 <= d <= 1 on the depth plane.
     let (w, h) = (r.c1 - r.c0 + 1, r.r1 - r.r0 + 1);
     if w * h <= 4 {
@@ -217,11 +238,159 @@ fn z_test_face(
         let lr = (row - rect.r0) as usize;
         sc.touch(lr, cl - rect.c0, cr - rect.c0);
         let first = lr * TILE_SIZE + (cl - rect.c0) as usize;
+        #[cfg(target_arch = "x86_64")]
+        if k == 1 && avx2 {
+            // The K-buffer has SPAN_LANES slots of padding past the last pixel.
+            let n = (cr - cl) as usize + 1;
+            let slots = first..first + n.next_multiple_of(SPAN_LANES);
+            // SAFETY: `avx2` is set only when the CPU has AVX2 (`use_avx2`).
+            let (filled, ambiguous) = unsafe {
+                z_test_span_k1(
+                    st,
+                    &tr,
+                    dr,
+                    dz[0],
+                    cl,
+                    n,
+                    &mut sc.depth[slots.clone()],
+                    &mut sc.idx[slots],
+                    li,
+                )
+            };
+            sc.filled[lr] += filled;
+            if ambiguous {
+                // The pixels the filter could not settle, exactly (rare: pixels within a few
+                // ulps of an edge); the others were settled above.
+                for (j, col) in (cl..cr + 1).enumerate() {
+                    if ambiguous_pixel(st, &st.eval(col as f64, &tr)) {
+                        let p = first + j;
+                        test_pixel(st, verts, sc, 1, li, &tr, dr, dz[0], col as f64, rf, p, lr);
+                    }
+                }
+            }
+            continue;
+        }
         for (j, col) in (cl..cr + 1).enumerate() {
             let p = (first + j) * k;
             test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr);
         }
     }
+}
+
+/// Whether the filter leaves pixel coverage open: not certainly inside (`e_i > bnd_i` for
+/// all `i`) and not certainly outside (`e_i < -bnd_i` for some `i`).
+#[inline(always)]
+fn ambiguous_pixel(st: &Setup, e: &[f64; 3]) -> bool {
+    let bnd = &st.bnd;
+    let inside = (e[0] > bnd[0]) & (e[1] > bnd[1]) & (e[2] > bnd[2]);
+    let outside = (e[0] < -bnd[0]) | (e[1] < -bnd[1]) | (e[2] < -bnd[2]);
+    !inside & !outside
+}
+
+/// Pixels [`z_test_span_k1`] tests together.
+pub(crate) const SPAN_LANES: usize = 4;
+
+/// [`test_pixel`] for `K = 1` over the `n` pixels `c0..c0 + n` of one row (row part `tr` of
+/// the edge functions, depth plane `dza col + dr`; K-buffer slots `depth` and `idx`, one per
+/// pixel) with AVX2, [`SPAN_LANES`] pixels at a time, for the pixels the filter settles. The
+/// slices must hold `n` rounded up to a multiple of [`SPAN_LANES`] slots; lanes past `n` store
+/// back what they read. Returns the number of slots filled for the first time and whether some
+/// pixel was [ambiguous](ambiguous_pixel): those are left untouched for the exact test. Each
+/// lane computes [`test_pixel`]'s edge values, depth and comparisons with the same IEEE
+/// operations in the same order (no fused multiply-adds), so the results are bit-identical.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn z_test_span_k1(
+    st: &Setup,
+    tr: &[f64; 3],
+    dr: f64,
+    dza: f64,
+    c0: u32,
+    n: usize,
+    depth: &mut [f64],
+    idx: &mut [u32],
+    li: u32,
+) -> (u32, bool) {
+    use std::arch::x86_64::*;
+    let groups = n.div_ceil(SPAN_LANES);
+    assert!(depth.len() >= groups * SPAN_LANES && idx.len() >= groups * SPAN_LANES);
+    let a = st.a.map(|x| _mm256_set1_pd(x));
+    let t = tr.map(|x| _mm256_set1_pd(x));
+    let hi = st.bnd.map(|x| _mm256_set1_pd(x));
+    let lo = st.bnd.map(|x| _mm256_set1_pd(-x));
+    let (dza, dr) = (_mm256_set1_pd(dza), _mm256_set1_pd(dr));
+    let (one, m_one, zero) = (
+        _mm256_set1_pd(1.0),
+        _mm256_set1_pd(-1.0),
+        _mm256_setzero_pd(),
+    );
+    let (inf, four) = (_mm256_set1_pd(f64::INFINITY), _mm256_set1_pd(4.0));
+    // Lane l of group g is pixel j = 4 g + l at column c0 + j (exact in f64).
+    let mut jv = _mm256_set_pd(3.0, 2.0, 1.0, 0.0);
+    let mut col = _mm256_add_pd(_mm256_set1_pd(c0 as f64), jv);
+    let nv = _mm256_set1_pd(n as f64);
+    let (mut filled, mut ambiguous) = (0u32, 0i32);
+    for g in 0..groups {
+        let j = g * SPAN_LANES;
+        // Setup::eval: a_i col + (b_i row + c_i).
+        let e0 = _mm256_add_pd(_mm256_mul_pd(a[0], col), t[0]);
+        let e1 = _mm256_add_pd(_mm256_mul_pd(a[1], col), t[1]);
+        let e2 = _mm256_add_pd(_mm256_mul_pd(a[2], col), t[2]);
+        let inside = _mm256_and_pd(
+            _mm256_and_pd(
+                _mm256_cmp_pd::<_CMP_GT_OQ>(e0, hi[0]),
+                _mm256_cmp_pd::<_CMP_GT_OQ>(e1, hi[1]),
+            ),
+            _mm256_cmp_pd::<_CMP_GT_OQ>(e2, hi[2]),
+        );
+        let outside = _mm256_or_pd(
+            _mm256_or_pd(
+                _mm256_cmp_pd::<_CMP_LT_OQ>(e0, lo[0]),
+                _mm256_cmp_pd::<_CMP_LT_OQ>(e1, lo[1]),
+            ),
+            _mm256_cmp_pd::<_CMP_LT_OQ>(e2, lo[2]),
+        );
+        let live = _mm256_cmp_pd::<_CMP_LT_OQ>(jv, nv);
+        // live & !inside & !outside
+        let amb = _mm256_andnot_pd(outside, _mm256_andnot_pd(inside, live));
+        ambiguous |= _mm256_movemask_pd(amb);
+        let d = _mm256_add_pd(_mm256_mul_pd(dza, col), dr);
+        // SAFETY: `j + 4 <= groups * 4 <= depth.len()` (asserted above).
+        let old = unsafe { _mm256_loadu_pd(depth.as_ptr().add(j)) };
+        let sum = _mm256_add_pd(_mm256_add_pd(e0, e1), e2);
+        let ok = _mm256_and_pd(
+            _mm256_and_pd(
+                _mm256_and_pd(live, inside),
+                _mm256_and_pd(
+                    _mm256_cmp_pd::<_CMP_GE_OQ>(d, m_one),
+                    _mm256_cmp_pd::<_CMP_LE_OQ>(d, one),
+                ),
+            ),
+            _mm256_and_pd(
+                _mm256_cmp_pd::<_CMP_LT_OQ>(d, old),
+                _mm256_cmp_pd::<_CMP_GT_OQ>(sum, zero),
+            ),
+        );
+        let m = _mm256_movemask_pd(ok);
+        if m != 0 {
+            let fresh = _mm256_and_pd(ok, _mm256_cmp_pd::<_CMP_EQ_OQ>(old, inf));
+            filled += _mm256_movemask_pd(fresh).count_ones();
+            // SAFETY: as for the load.
+            unsafe { _mm256_storeu_pd(depth.as_mut_ptr().add(j), _mm256_blendv_pd(old, d, ok)) };
+            for (l, slot) in idx[j..j + SPAN_LANES].iter_mut().enumerate() {
+                if m & (1 << l) != 0 {
+                    *slot = li;
+                }
+            }
+        }
+        col = _mm256_add_pd(col, four);
+        jv = _mm256_add_pd(jv, four);
+    }
+    (filled, ambiguous != 0)
 }
 
 /// Coverage, depth and K-buffer insertion of one pixel (K-buffer slots `p..p + k`, local row

@@ -43,7 +43,13 @@
 //!   (allocated uninitialised and written once), per run of consecutive fragments of one
 //!   face in a tile row (the record, the row part of its edge functions and its per-face
 //!   constants taken once per run; each fragment's values are the same expressions as
-//!   computed alone). Input validation (face indices, finite vertices) runs in parallel and
+//!   computed alone). With `K = 1` the coverage and depth test of a span and the values of a
+//!   run are computed four pixels at a time with AVX2 where the CPU has it (runtime
+//!   detection; the same IEEE operations in the same order, so the output is bit-identical to
+//!   the portable code, which a test checks). The barycentric derivatives are computed only
+//!   when [`RasterSettings::barycentric_derivatives`] asks for them (texturing); the
+//!   approximate-gradient methods, DIB-R, untextured scene pipelines and `fit-face` skip them.
+//!   Input validation (face indices, finite vertices) runs in parallel and
 //!   reports the first offender in index order. Bins list faces in increasing index order
 //!   and depth ties go to the lower face index, so the result is bit-identical for any number
 //!   of threads.
@@ -102,6 +108,12 @@ pub struct RasterSettings {
     /// Perspective-correct barycentrics (default `true`); `false` gives barycentrics affine in
     /// screen space (DEODR's mode). Depth is interpolated perspective-correctly either way.
     pub perspective_correct: bool,
+    /// Compute the screen-space barycentric derivatives [`Fragments::dbary_dx`] and
+    /// [`Fragments::dbary_dy`] (default `true`). Only texture filtering and attribute
+    /// derivatives ([`crate::shade::uv_derivatives`]) read them; without them both arrays are
+    /// left empty, which halves the per-fragment output (nvdiffrast likewise outputs its
+    /// `rast_db` only for filtering).
+    pub barycentric_derivatives: bool,
 }
 
 impl Default for RasterSettings {
@@ -112,6 +124,7 @@ impl Default for RasterSettings {
             faces_per_pixel: 1,
             cull_backfaces: false,
             perspective_correct: true,
+            barycentric_derivatives: true,
         }
     }
 }

@@ -214,6 +214,13 @@ impl<T: Real> Op<T> for DerivOp<T> {
         let c = attr.shape()[1];
         let a = attr.as_slice().expect("std");
         let f = &self.fragments;
+        if !f.has_derivatives() {
+            return Err(AutodiffError::invalid(
+                "interpolate_derivatives",
+                "the fragments carry no barycentric derivatives: rasterize with \
+                 RasterSettings::barycentric_derivatives = true",
+            ));
+        }
         let n = f.len();
         let mut out = vec![T::zero(); 2 * n * c];
         if c > 0 {
@@ -267,7 +274,8 @@ impl<T: Real> Op<T> for DerivOp<T> {
 /// `C` derivatives per pixel step right (`col + 1`) then the `C` per step down (`row + 1`),
 /// chained from the rasterizer's barycentric derivatives. For uvs `[V, 2]` this is `uv_da`
 /// = (du/dx, dv/dx, du/dy, dv/dy), the input of trilinear filtering. Differentiable with
-/// respect to the attributes.
+/// respect to the attributes. Its value is an error when `r` was rasterized without
+/// [`crate::raster::RasterSettings::barycentric_derivatives`].
 pub fn uv_derivatives<'t, T: Real>(attributes: Var<'t, T>, r: &Rasterized<'t, T>) -> Var<'t, T> {
     let op = DerivOp {
         fragments: r.fragments.clone(),

@@ -264,6 +264,7 @@ pub fn dibr<'t, T: Real>(
     let mut rs = RasterSettings::new(settings.width, settings.height);
     rs.perspective_correct = settings.perspective_correct;
     rs.cull_backfaces = settings.cull_backfaces;
+    rs.barycentric_derivatives = false;
     let r = rasterize(clip, faces.clone(), &rs)?;
     let cols = interpolate(attrs, &r)?;
     let bg: Vec<T> = (0..c)
