@@ -156,11 +156,12 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(std::env::var("ROBUST_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(64)))]
 
     #[test]
-    fn hard_rasterizer_on_random_soups(s in soup(), k in 1usize..4, cull in any::<bool>(), persp in any::<bool>()) {
+    fn hard_rasterizer_on_random_soups(s in soup(), k in 1usize..4, cull in any::<bool>(), persp in any::<bool>(), derivs in any::<bool>()) {
         let settings = RasterSettings {
             faces_per_pixel: k,
             cull_backfaces: cull,
             perspective_correct: persp,
+            barycentric_derivatives: derivs,
             ..RasterSettings::new(s.width, s.height)
         };
         // The raw rasterizer: non-finite vertices are the one error these inputs can give.
@@ -171,6 +172,8 @@ proptest! {
                 prop_assert!(fr.depth.iter().chain(&fr.view_depth).all(|x| x.is_finite()));
                 prop_assert!(fr.dbary_dx.iter().chain(&fr.dbary_dy).flatten().all(|x| x.is_finite()));
                 prop_assert!(fr.face.iter().all(|&f| (f as usize) < s.faces.len()));
+                prop_assert_eq!(fr.has_derivatives(), derivs || fr.is_empty());
+                prop_assert!(fr.validate().is_ok());
             }
             Err(e) => {
                 prop_assert!(!s.finite(), "finite input refused: {e}");
