@@ -258,12 +258,29 @@ impl TileFrags {
                 let slots = cols.start * k..cols.end * k;
                 let (dk, ik) = (&sc.depth[slots.clone()], &sc.idx[slots]);
                 if k == 1 {
+                    // Compaction into the reserved capacity: every pixel writes the next slot,
+                    // which only a filled slot (depth <= 1) keeps.
+                    let (mut n, cap) = (out.idx.len(), out.idx.capacity());
+                    let (idx, depth) = (
+                        &mut out.idx.spare_capacity_mut()[..cap - n],
+                        &mut out.depth.spare_capacity_mut()[..cap - n],
+                    );
+                    let base = n;
                     for ((cnt, &d), &i) in out.counts[cols].iter_mut().zip(dk).zip(ik) {
-                        if d <= 1.0 {
-                            out.idx.push(i);
-                            out.depth.push(d);
-                            *cnt = 1;
+                        let filled = d <= 1.0;
+                        if n - base < idx.len() {
+                            idx[n - base].write(i);
+                            depth[n - base].write(d);
                         }
+                        *cnt = filled as u16;
+                        n += filled as usize;
+                    }
+                    // SAFETY: the first `n` slots of both vectors are initialised: the
+                    // earlier ones before, `base..n` above (each kept slot was written before
+                    // `n` moved past it, and `n <= total`, the reserved capacity).
+                    unsafe {
+                        out.idx.set_len(n);
+                        out.depth.set_len(n);
                     }
                 } else {
                     for ((cnt, dk), ik) in out.counts[cols]

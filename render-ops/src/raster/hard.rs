@@ -329,6 +329,7 @@ unsafe fn z_test_span_k1(
         _mm256_setzero_pd(),
     );
     let (inf, four) = (_mm256_set1_pd(f64::INFINITY), _mm256_set1_pd(4.0));
+    let li32 = _mm_set1_epi32(li as i32);
     // Lane l of group g is pixel j = 4 g + l at column c0 + j (exact in f64).
     let mut jv = _mm256_set_pd(3.0, 2.0, 1.0, 0.0);
     let mut col = _mm256_add_pd(_mm256_set1_pd(c0 as f64), jv);
@@ -381,11 +382,13 @@ unsafe fn z_test_span_k1(
             filled += _mm256_movemask_pd(fresh).count_ones();
             // SAFETY: as for the load.
             unsafe { _mm256_storeu_pd(depth.as_mut_ptr().add(j), _mm256_blendv_pd(old, d, ok)) };
-            for (l, slot) in idx[j..j + SPAN_LANES].iter_mut().enumerate() {
-                if m & (1 << l) != 0 {
-                    *slot = li;
-                }
-            }
+            // The low halves of the 64-bit lane masks, as four 32-bit masks.
+            let ok32 = _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(
+                _mm256_castpd_si256(ok),
+                _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6),
+            ));
+            // SAFETY: `j + 4 <= idx.len()` (asserted above).
+            unsafe { _mm_maskstore_epi32(idx.as_mut_ptr().add(j).cast(), ok32, li32) };
         }
         col = _mm256_add_pd(col, four);
         jv = _mm256_add_pd(jv, four);
