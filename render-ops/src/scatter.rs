@@ -67,3 +67,28 @@ pub(crate) fn scatter_face_corners<'a, I>(
         }
     });
 }
+
+/// Adds per-vertex rows (`width` values per vertex) in a fixed order: `items()` yields
+/// `(vertex, vals)` with `width` values each. Every vertex sums its rows in the order of
+/// `items` ([`scatter_by_vertex`]), so the result is bit-identical for any number of threads.
+pub(crate) fn scatter_vertex_rows<'a, I>(
+    acc: &mut [f64],
+    width: usize,
+    items: impl Fn() -> I + Sync,
+) where
+    I: Iterator<Item = (u32, &'a [f64])>,
+{
+    if width == 0 {
+        return;
+    }
+    scatter_by_vertex(acc, width, |vr, out| {
+        for (v, vals) in items() {
+            let v = v as usize;
+            if vr.contains(&v) {
+                for (o, x) in out[(v - vr.start) * width..][..width].iter_mut().zip(vals) {
+                    *o += x;
+                }
+            }
+        }
+    });
+}

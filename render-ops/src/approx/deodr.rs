@@ -67,8 +67,8 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::{
-    bin_by_lines, cross2, depth_buffer, edge_weights, hard_render_grad, prepare, render_hard, sub,
-    tensor_f64, ApproxSettings, Screen,
+    bin_by_lines, cross2, edge_weights, hard_render_grad, prepare, render_hard, sub, tensor_f64,
+    ApproxSettings, Screen,
 };
 use crate::error::RenderError;
 use crate::raster::Fragments;
@@ -104,7 +104,6 @@ pub fn deodr<'t, T: Real>(
     } else {
         EdgeSet::empty(settings.height)
     };
-    let zbuf = depth_buffer(&fragments);
     let op = DeodrOp {
         fragments,
         faces,
@@ -112,7 +111,6 @@ pub fn deodr<'t, T: Real>(
         background,
         screen,
         edges,
-        zbuf,
         hard_px: Vec::new(),
     };
     Ok(clip.tape().apply(op, &[clip, attrs]))
@@ -173,15 +171,17 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
         Other,
         Invalid,
     }
+    // A vertex is usable when it is in front of the eye (w > 0) with a finite position.
+    let usable: Vec<bool> = (0..screen.px.len())
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| screen.w[i] > 0.0 && screen.px[i].iter().all(|x| x.is_finite()))
+        .collect();
     let kind: Vec<Kind> = faces
         .par_iter()
         .with_min_len(4096)
         .map(|&f| {
-            let ok = f.iter().all(|&i| {
-                let i = i as usize;
-                screen.w[i] > 0.0 && screen.px[i].iter().all(|x| x.is_finite())
-            });
-            if !ok {
+            if !f.iter().all(|&i| usable[i as usize]) {
                 return Kind::Invalid;
             }
             let v = f.map(|i| screen.px[i as usize]);
@@ -192,77 +192,67 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
             }
         })
         .collect();
-    // Undirected edges of front and invalid faces, grouped by their lower vertex with a
-    // counting sort (`(higher vertex, face * 3 + k)` per entry), then by the higher vertex
-    // within each vertex's short list.
-    let nv = screen.px.len();
-    let mut start = vec![0usize; nv + 1];
-    for (fi, f) in faces.iter().enumerate() {
-        if kind[fi] != Kind::Other {
-            for k in 0..3 {
-                start[f[k].min(f[(k + 1) % 3]) as usize + 1] += 1;
-            }
-        }
-    }
-    for v in 0..nv {
-        start[v + 1] += start[v];
-    }
-    let mut fill = start.clone();
-    let mut by_lo = vec![(0u32, 0u32); start[nv]];
-    for (fi, f) in faces.iter().enumerate() {
-        if kind[fi] != Kind::Other {
-            for k in 0..3 {
-                let (a, b) = (f[k], f[(k + 1) % 3]);
-                let slot = &mut fill[a.min(b) as usize];
-                by_lo[*slot] = (a.max(b), (fi * 3 + k) as u32);
-                *slot += 1;
-            }
-        }
-    }
     let face_depth = |fk: u32| -> f64 {
         faces[fk as usize / 3]
             .iter()
             .map(|&v| screen.clip[v as usize][2] / screen.w[v as usize])
             .sum()
     };
-    // Edges shared by exactly one front face and no invalid one, in any order (sorted below).
-    let mut sil: Vec<(f64, u32)> = (0..nv)
+    // The undirected edges of front and invalid faces, listed under their lower vertex (`(higher
+    // vertex, face * 3 + k)` per entry): an edge of a front face is a silhouette edge when no
+    // other entry of its lower vertex has the same higher vertex. Each block of lower vertices
+    // scans all faces for its own entries, in parallel; the edges found are sorted below, so
+    // their order here does not matter.
+    let nv = screen.px.len();
+    let listed = kind.iter().filter(|&&k| k != Kind::Other).count();
+    let blocks = rayon::current_num_threads().min(nv / 4096).max(1);
+    let per = nv.div_ceil(blocks).max(1);
+    let mut sil: Vec<(f64, u32)> = (0..blocks)
         .into_par_iter()
-        .with_min_len(1024)
-        .fold(
-            || (Vec::new(), Vec::new()),
-            |(mut out, mut list), v| {
-                let (s0, s1) = (start[v], start[v + 1]);
-                list.clear();
-                list.extend_from_slice(&by_lo[s0..s1]);
-                list.sort_unstable();
-                let mut i = 0;
-                while i < list.len() {
-                    let mut j = i + 1;
-                    while j < list.len() && list[j].0 == list[i].0 {
-                        j += 1;
+        .flat_map_iter(|b| {
+            let vr = b * per..((b + 1) * per).min(nv);
+            // Per vertex of the block its last entry, and per entry its higher vertex, face
+            // edge and the previous entry of the same lower vertex (`u32::MAX`: none).
+            let mut head = vec![u32::MAX; vr.len()];
+            let mut ent: Vec<(u32, u32, u32)> = Vec::with_capacity(3 * listed / blocks + 64);
+            for (fi, f) in faces.iter().enumerate() {
+                if kind[fi] == Kind::Other {
+                    continue;
+                }
+                for k in 0..3 {
+                    let (a, b) = (f[k], f[(k + 1) % 3]);
+                    let lo = a.min(b) as usize;
+                    if vr.contains(&lo) {
+                        let h = &mut head[lo - vr.start];
+                        ent.push((a.max(b), (fi * 3 + k) as u32, *h));
+                        *h = (ent.len() - 1) as u32;
                     }
-                    let group = &list[i..j];
-                    let mut fronts = group
-                        .iter()
-                        .filter(|&&(_, fk)| kind[fk as usize / 3] == Kind::Front);
-                    let front = fronts.next();
-                    let invalid = group
-                        .iter()
-                        .any(|&(_, fk)| kind[fk as usize / 3] == Kind::Invalid);
-                    if let (Some(&(_, fk)), None, false) = (front, fronts.next(), invalid) {
+                }
+            }
+            let mut out = Vec::new();
+            let mut list: Vec<(u32, u32)> = Vec::new();
+            for &h in &head {
+                list.clear();
+                let mut j = h;
+                while j != u32::MAX {
+                    let (hi, fk, next) = ent[j as usize];
+                    list.push((hi, fk));
+                    j = next;
+                }
+                for (m, &(hi, fk)) in list.iter().enumerate() {
+                    if kind[fk as usize / 3] == Kind::Front
+                        && !list
+                            .iter()
+                            .enumerate()
+                            .any(|(l, &(h2, _))| l != m && h2 == hi)
+                    {
                         out.push((face_depth(fk), fk));
                     }
-                    i = j;
                 }
-                (out, list)
-            },
-        )
-        .map(|(out, _)| out)
-        .reduce(Vec::new, |mut a, b| {
-            a.extend(b);
-            a
-        });
+            }
+            out
+        })
+        .collect();
     // DEODR's order: farthest face first (sum of depths), then face index and edge.
     sil.sort_unstable_by(|a, b| match b.0.total_cmp(&a.0) {
         Ordering::Equal => a.1.cmp(&b.1),
@@ -504,14 +494,25 @@ struct DeodrOp<T: Real> {
     background: Vec<T>,
     screen: Screen,
     edges: EdgeSet,
-    /// NDC depth of each pixel's nearest fragment (infinity where uncovered).
-    zbuf: Vec<f64>,
     /// Per image row, the hard render's values at the pixels the overdraw touched, kept by
     /// the forward for the backward's replay.
     hard_px: Vec<RowPixels>,
 }
 
 impl<T: Real> DeodrOp<T> {
+    /// NDC depth of pixel `p`'s nearest fragment (infinity where uncovered): the z-buffer the
+    /// overdraw tests against.
+    #[inline]
+    fn depth(&self, p: usize) -> f64 {
+        let fr = &self.fragments;
+        let (s, e) = (fr.offsets[p], fr.offsets[p + 1]);
+        if s < e {
+            fr.depth[s as usize].to_f64c()
+        } else {
+            f64::INFINITY
+        }
+    }
+
     /// Overdraws row `row` of the image (`src`: that row, `W * (C + 1)` values, the hard render)
     /// into the `f64` copies `out` of the pixels it touches, calling `layer` after each blend
     /// with the pixel value it replaced.
@@ -540,7 +541,7 @@ impl<T: Real> DeodrOp<T> {
                     continue;
                 }
                 let z = e.z[0] + t * (e.z[1] - e.z[0]);
-                if !(z < self.zbuf[row * w + x]) {
+                if !(z < self.depth(row * w + x)) {
                     continue;
                 }
                 let tr = s / sigma;

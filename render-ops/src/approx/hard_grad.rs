@@ -4,22 +4,25 @@
 //!
 //! `dL/dA[f_k] = sum_p b_k dL/dI_p` is exact. For the positions, `dL/db_k = dL/dI_p . A[f_k]`
 //! goes through the rasterizer's barycentric backward (the interior gradient of
-//! [`crate::raster::rasterize_backward`]), whose per-fragment products are summed per run in
-//! the factored form of [`RunVjp`].
+//! [`crate::raster::rasterize_backward`]), whose per-fragment products are summed per face in
+//! the factored form of [`RunVjp`] and multiplied out once per face ([`FaceVjp::finish`]).
 //!
-//! Deterministic: fragments are visited in fixed chunks of 512 in parallel; within a chunk
-//! each run of consecutive fragments of one face sums its contributions in fragment order, and
-//! every vertex then adds the runs' sums in fragment order (parallel over vertex blocks,
-//! [`scatter_face_corners`]), so the result is bit-identical for any number of threads.
+//! Fragments are visited in fixed chunks of [`CHUNK`] in parallel. Within a chunk, each face
+//! sums its fragments' factors in fragment order (its setup and the final product are made
+//! once per face and chunk, however many runs of pixels the face has in it: on fine meshes
+//! most runs are one or two pixels long), then each vertex sums its faces' contributions in
+//! the order the faces were first met; every vertex then adds the chunks' sums in chunk order
+//! (parallel over vertex blocks, [`scatter_vertex_rows`]). The chunking does not depend on the
+//! number of threads, so the result is bit-identical for any number of threads.
 
 use autodiff::Real;
 use rayon::prelude::*;
 
 use crate::raster::{FaceVjp, Fragments, RunVjp};
-use crate::scatter::scatter_face_corners;
+use crate::scatter::scatter_vertex_rows;
 
 /// Fragments per parallel chunk.
-const CHUNK: usize = 512;
+const CHUNK: usize = 4096;
 
 /// The gradients of the hard render, in `f64`: `dL/dclip` `[V]` and `dL/dA` `[V * C]`, each
 /// only when asked for.
@@ -28,12 +31,100 @@ pub(crate) struct HardGrad {
     pub attr: Option<Vec<f64>>,
 }
 
-/// What one chunk's runs contribute: per run its face, and (when asked for) the run's
-/// `dL/dclip` of the face's vertices and its `dL/dA` of the face's vertices (`3 * C`).
-struct Runs {
-    face: Vec<u32>,
-    pos: Vec<[[f64; 4]; 3]>,
+/// What one chunk contributes: the vertices its fragments' faces reach, in order of first
+/// touch, and per vertex its `dL/dclip` and its `dL/dA` (`C` values), each when asked for.
+struct ChunkSums {
+    verts: Vec<u32>,
+    pos: Vec<[f64; 4]>,
     attr: Vec<f64>,
+}
+
+/// A map from `u32` keys (below `u32::MAX`) to dense indices `0, 1, ..` in order of insertion
+/// (open addressing), cleared in time proportional to its length.
+struct IndexMap {
+    /// `(key, index)` per slot, `key == u32::MAX` where empty.
+    slots: Vec<(u32, u32)>,
+    /// The occupied slots, in order of insertion.
+    used: Vec<u32>,
+    /// `32 - log2(slots.len())`: the hash keeps the top bits of the product.
+    shift: u32,
+}
+
+impl IndexMap {
+    /// A map for at most `max_len` keys (kept at most half full).
+    fn new(max_len: usize) -> Self {
+        let cap = (2 * max_len).next_power_of_two().max(16);
+        IndexMap {
+            slots: vec![(u32::MAX, 0); cap],
+            used: Vec::with_capacity(max_len),
+            shift: 32 - cap.trailing_zeros(),
+        }
+    }
+
+    /// The index of `key`, and whether it was inserted by this call (as index `len - 1`).
+    #[inline]
+    fn index(&mut self, key: u32) -> (usize, bool) {
+        debug_assert!(key != u32::MAX && self.used.len() < self.slots.len() / 2);
+        let mask = self.slots.len() - 1;
+        let mut s = (key.wrapping_mul(0x9E37_79B9) >> self.shift) as usize;
+        loop {
+            let (k, v) = self.slots[s];
+            if k == key {
+                return (v as usize, false);
+            }
+            if k == u32::MAX {
+                let v = self.used.len();
+                self.slots[s] = (key, v as u32);
+                self.used.push(s as u32);
+                return (v, true);
+            }
+            s = (s + 1) & mask;
+        }
+    }
+
+    fn clear(&mut self) {
+        for &s in &self.used {
+            self.slots[s as usize].0 = u32::MAX;
+        }
+        self.used.clear();
+    }
+}
+
+/// Per-thread scratch of the chunks: the faces met in the chunk (in order of first touch)
+/// with their setup, factor sums, attributes (`3 * C`, for the positions) and `dL/dA` (`3 *
+/// C`), and the maps from face and vertex indices to their entries.
+struct Scratch {
+    face_ix: IndexMap,
+    vert_ix: IndexMap,
+    face: Vec<u32>,
+    fv: Vec<FaceVjp>,
+    acc: Vec<RunVjp>,
+    a_face: Vec<f64>,
+    ga: Vec<f64>,
+}
+
+impl Scratch {
+    fn new() -> Self {
+        Scratch {
+            face_ix: IndexMap::new(CHUNK),
+            vert_ix: IndexMap::new(3 * CHUNK),
+            face: Vec::new(),
+            fv: Vec::new(),
+            acc: Vec::new(),
+            a_face: Vec::new(),
+            ga: Vec::new(),
+        }
+    }
+
+    fn clear(&mut self) {
+        self.face_ix.clear();
+        self.vert_ix.clear();
+        self.face.clear();
+        self.fv.clear();
+        self.acc.clear();
+        self.a_face.clear();
+        self.ga.clear();
+    }
 }
 
 /// The inputs of one backward.
@@ -85,69 +176,57 @@ pub(crate) fn hard_grad<T: Real>(
         need_attr,
     };
     let n = frags.len();
-    let runs: Vec<Runs> = (0..n.div_ceil(CHUNK))
+    let chunks: Vec<ChunkSums> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
-        .map(|ci| {
+        .map_init(Scratch::new, |sc, ci| {
             let (i0, i1) = (ci * CHUNK, ((ci + 1) * CHUNK).min(n));
             match c {
-                3 => chunk_runs::<T, 3>(&inp, i0, i1),
-                1 => chunk_runs::<T, 1>(&inp, i0, i1),
-                _ => chunk_runs::<T, 0>(&inp, i0, i1),
+                3 => chunk_sums::<T, 3>(&inp, sc, i0, i1),
+                1 => chunk_sums::<T, 1>(&inp, sc, i0, i1),
+                _ => chunk_sums::<T, 0>(&inp, sc, i0, i1),
             }
         })
         .collect();
     let nv = clip.len();
+    // The chunks' per-vertex sums, added in chunk order.
     let pos = need_pos.then(|| {
         let mut acc = vec![[0.0f64; 4]; nv];
-        scatter_face_corners(acc.as_flattened_mut(), 4, faces, || {
-            runs.iter().flat_map(|r| {
-                r.face
+        scatter_vertex_rows(acc.as_flattened_mut(), 4, || {
+            chunks.iter().flat_map(|ch| {
+                ch.verts
                     .iter()
                     .copied()
-                    .zip(r.pos.iter().map(|g| g.as_flattened()))
+                    .zip(ch.pos.iter().map(|g| g.as_slice()))
             })
         });
         acc
     });
     let attr = need_attr.then(|| {
         let mut acc = vec![0.0f64; nv * c];
-        scatter_face_corners(&mut acc, c, faces, || {
-            runs.iter()
-                .flat_map(|r| r.face.iter().copied().zip(r.attr.chunks_exact(3 * c)))
+        scatter_vertex_rows(&mut acc, c, || {
+            chunks
+                .iter()
+                .flat_map(|ch| ch.verts.iter().copied().zip(ch.attr.chunks_exact(c.max(1))))
         });
         acc
     });
     HardGrad { pos, attr }
 }
 
-/// The runs of fragments `i0..i1`, for `C` channels (`C = 0`: `inp.c`, known at run time).
-fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize) -> Runs {
+/// The per-vertex sums of fragments `i0..i1`, for `C` channels (`C = 0`: `inp.c`, known at run
+/// time).
+fn chunk_sums<T: Real, const C: usize>(
+    inp: &Inputs<'_, T>,
+    sc: &mut Scratch,
+    i0: usize,
+    i1: usize,
+) -> ChunkSums {
     let c = if C > 0 { C } else { inp.c };
     let fr = inp.frags;
     let (wf, hf) = (fr.width as f64, fr.height as f64);
-    // At most one run per fragment: no regrowth.
-    let n = i1 - i0;
-    let mut out = Runs {
-        face: Vec::with_capacity(n),
-        pos: Vec::with_capacity(if inp.need_pos { n } else { 0 }),
-        attr: Vec::with_capacity(if inp.need_attr { 3 * c * n } else { 0 }),
-    };
-    // The current run: its face, the face's attributes (`3 * C`), setup and sums.
-    let mut cur: Option<(u32, FaceVjp)> = None;
-    let mut a_face = vec![0.0f64; 3 * c];
-    let mut ga = vec![0.0f64; 3 * c];
-    let mut acc = RunVjp::default();
-    let flush = |out: &mut Runs, cur: &Option<(u32, FaceVjp)>, acc: &RunVjp, ga: &[f64]| {
-        if let Some((fi, fv)) = cur {
-            out.face.push(*fi);
-            if inp.need_pos {
-                out.pos.push(fv.finish(acc, inp.persp));
-            }
-            if inp.need_attr {
-                out.attr.extend_from_slice(ga);
-            }
-        }
-    };
+    sc.clear();
+    // The face of the previous fragment and its entry: runs of one face skip the map.
+    let mut cur: Option<(u32, usize)> = None;
     // Pixel centres in NDC: `x = (col + 0.5) sx - 1`, `y = 1 - (row + 0.5) sy`.
     let (sx, sy) = (2.0 / wf, 2.0 / hf);
     let mut p = fr.pixel_of(i0);
@@ -172,21 +251,33 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
             continue;
         }
         let fi = fr.face[i];
-        if !matches!(&cur, Some((cf, _)) if *cf == fi) {
-            flush(&mut out, &cur, &acc, &ga);
-            let f = inp.faces[fi as usize];
-            let v = f.map(|vi| inp.clip[vi as usize].map(|x| x.to_f64c()));
-            if inp.need_pos {
-                for (k, &vi) in f.iter().enumerate() {
-                    for ch in 0..c {
-                        a_face[k * c + ch] = inp.attrs[vi as usize * c + ch].to_f64c();
+        let e = match cur {
+            Some((cf, e)) if cf == fi => e,
+            _ => {
+                let (e, new) = sc.face_ix.index(fi);
+                if new {
+                    let f = inp.faces[fi as usize];
+                    let v = f.map(|vi| inp.clip[vi as usize].map(|x| x.to_f64c()));
+                    sc.face.push(fi);
+                    sc.fv.push(FaceVjp::new(&v));
+                    sc.acc.push(RunVjp::default());
+                    if inp.need_pos {
+                        for vi in f {
+                            sc.a_face.extend(
+                                inp.attrs[vi as usize * c..][..c]
+                                    .iter()
+                                    .map(|x| x.to_f64c()),
+                            );
+                        }
+                    }
+                    if inp.need_attr {
+                        sc.ga.resize(sc.ga.len() + 3 * c, 0.0);
                     }
                 }
+                cur = Some((fi, e));
+                e
             }
-            cur = Some((fi, FaceVjp::new(&v)));
-            acc = RunVjp::default();
-            ga.fill(0.0);
-        }
+        };
         while ov < inp.over_pix.len() && (inp.over_pix[ov] as usize) < p {
             ov += 1;
         }
@@ -199,7 +290,7 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
         }
         if inp.need_attr && c > 0 {
             let b = fr.bary[i].map(|x| x.to_f64c());
-            for (row, bk) in ga.chunks_exact_mut(c).zip(b) {
+            for (row, bk) in sc.ga[e * 3 * c..][..3 * c].chunks_exact_mut(c).zip(b) {
                 for (o, g) in row.iter_mut().zip(&gpf) {
                     *o += bk * g;
                 }
@@ -207,16 +298,66 @@ fn chunk_runs<T: Real, const C: usize>(inp: &Inputs<'_, T>, i0: usize, i1: usize
         }
         if inp.need_pos {
             let mut gb = [0.0; 3];
-            for (gk, a) in gb.iter_mut().zip(a_face.chunks_exact(c.max(1))) {
-                for (g, a) in gpf.iter().zip(a) {
-                    *gk += g * a;
+            if c > 0 {
+                for (gk, a) in gb
+                    .iter_mut()
+                    .zip(sc.a_face[e * 3 * c..][..3 * c].chunks_exact(c))
+                {
+                    for (g, a) in gpf.iter().zip(a) {
+                        *gk += g * a;
+                    }
                 }
             }
             let px = [(col as f64 + 0.5) * sx - 1.0, py];
-            let fv = &cur.as_ref().expect("a run").1;
-            fv.accumulate(&mut acc, px, gb, inp.persp);
+            sc.fv[e].accumulate(&mut sc.acc[e], px, gb, inp.persp);
         }
     }
-    flush(&mut out, &cur, &acc, &ga);
+    vertex_sums::<T, C>(inp, sc)
+}
+
+/// The chunk's per-vertex sums from its faces' entries in `sc`: each face's `dL/dclip`
+/// ([`FaceVjp::finish`]) and `dL/dA` added into its vertices' rows, faces in order of first
+/// touch.
+fn vertex_sums<T, const C: usize>(inp: &Inputs<'_, T>, sc: &mut Scratch) -> ChunkSums {
+    let c = if C > 0 { C } else { inp.c };
+    let nf = sc.face.len();
+    let mut out = ChunkSums {
+        verts: Vec::with_capacity(2 * nf),
+        pos: Vec::with_capacity(if inp.need_pos { 2 * nf } else { 0 }),
+        attr: Vec::with_capacity(if inp.need_attr { 2 * nf * c } else { 0 }),
+    };
+    for (e, &fi) in sc.face.iter().enumerate() {
+        let pos = if inp.need_pos {
+            sc.fv[e].finish(&sc.acc[e], inp.persp)
+        } else {
+            [[0.0; 4]; 3]
+        };
+        let f = inp.faces[fi as usize];
+        for m in 0..3 {
+            let (k, new) = sc.vert_ix.index(f[m]);
+            if new {
+                out.verts.push(f[m]);
+                if inp.need_pos {
+                    out.pos.push([0.0; 4]);
+                }
+                if inp.need_attr {
+                    out.attr.resize(out.attr.len() + c, 0.0);
+                }
+            }
+            if inp.need_pos {
+                let o = &mut out.pos[k];
+                for j in 0..4 {
+                    o[j] += pos[m][j];
+                }
+            }
+            if inp.need_attr {
+                let o = &mut out.attr[k * c..][..c];
+                let g = &sc.ga[(e * 3 + m) * c..][..c];
+                for ch in 0..c {
+                    o[ch] += g[ch];
+                }
+            }
+        }
+    }
     out
 }

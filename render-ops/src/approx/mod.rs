@@ -36,7 +36,7 @@
 //!
 //! All work is in `f64` whatever the scalar. The exact part shared by all four (attribute
 //! gradients and the interior, barycentric position gradient of the hard render) is one pass
-//! over the fragments (`hard_grad`: per run of one face's fragments, in fixed chunks). The
+//! over the fragments (`hard_grad`: per face and fixed chunk of fragments). The
 //! methods' boundary contributions are computed in parallel over image rows (for `nmr`, over
 //! the rows and then the columns). Everything is reduced into the vertex gradients in a fixed
 //! order (fragment, row and column order), so results are bit-identical for any number of
