@@ -721,10 +721,16 @@ const EXP2_64THS: [f64; 64] = [
 /// constant in two parts, the high one exact for every product that occurs), `e^x = 2^m
 /// 2^(j/64) e^r`, `e^r - 1` by its Taylor polynomial of degree 5 (truncation below `4e-17`
 /// relative); within 2 ulp of the exact value (tested against `f64::exp`). Outside `(-708,
-/// 709)` (subnormal or overflowing results, NaN) it defers to `f64::exp`.
+/// 709)` (subnormal or overflowing results, NaN) it defers to `f64::exp`, except below `-746`,
+/// where `e^x < 2^-1076` rounds to the `+0` that `f64::exp` returns (without its underflow
+/// path: SoftRas's background weight `exp((eps - m) / gamma)` underflows at every pixel a face
+/// covers when gamma is small).
 #[inline(always)]
 pub(crate) fn exp(x: f64) -> f64 {
     if !(x > -708.0 && x < 709.0) {
+        if x < -746.0 {
+            return 0.0;
+        }
         return x.exp();
     }
     const SHIFT: f64 = 6755399441055744.0; // 1.5 * 2^52: adding it rounds to an integer.

@@ -636,15 +636,19 @@ impl<T: Real> Op<T> for SoftRasOp {
             .ok_or_else(|| AutodiffError::invalid("softras", "backward before forward"))?;
         let c = prep.channels;
         let go = ctx.grad_outputs[0].as_standard_layout();
-        let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
+        let go = go.as_slice().expect("standard layout");
         let stride = 3 * (4 + c);
-        let per_face = if prep.fast {
-            let planes = fast::Planes::new(prep, &go);
-            prep.bins.per_face(stride, |fi, acc| {
-                self.face_gradient32(prep, &prep.pxp, fi, &planes, acc)
-            })
-        } else {
-            self.per_face_f64(prep, &go)
+        let per_face = match T::as_f32(go) {
+            Some(go32) if prep.fast => {
+                let planes = fast::Planes::new(prep, go32);
+                prep.bins.per_face(stride, |fi, acc| {
+                    self.face_gradient32(prep, &prep.pxp, fi, &planes, acc)
+                })
+            }
+            _ => {
+                let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
+                self.per_face_f64(prep, &go)
+            }
         };
         let nv = prep.ndc.len();
         let mut gclip = vec![0.0; nv * 4];

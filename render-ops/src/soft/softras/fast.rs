@@ -521,20 +521,33 @@ pub(super) struct Planes {
 }
 
 impl Planes {
-    pub(super) fn new(prep: &Prep, go: &[f64]) -> Self {
-        let c = prep.channels;
-        let pstride = PIX_STATS + c;
-        let pixels = go.len() / (c + 1);
+    /// From the forward's per-pixel aggregate and the output gradient `go` (`[H, W, C + 1]`,
+    /// row-major, the `f32` tape's own values: no `f64` copy of the image gradient).
+    pub(super) fn new(prep: &Prep, go: &[f32]) -> Self {
+        match prep.channels {
+            0 => Self::build::<0>(prep, go),
+            1 => Self::build::<1>(prep, go),
+            2 => Self::build::<2>(prep, go),
+            3 => Self::build::<3>(prep, go),
+            _ => Self::build::<FAST_MAX_C>(prep, go),
+        }
+    }
+
+    /// [`Planes::new`] for `C` channels (the per-channel loops unroll).
+    fn build<const C: usize>(prep: &Prep, go: &[f32]) -> Self {
+        debug_assert_eq!(prep.channels, C);
+        let pstride = PIX_STATS + C;
+        let pixels = go.len() / (C + 1);
         let n = pixels + LANES;
-        let mut v = vec![0.0f32; (c + 4) * n];
+        let mut v = vec![0.0f32; (C + 4) * n];
         // Blocks of pixels in parallel, each writing its part of every plane (the values
         // depend on their pixel only).
         const BLOCK: usize = 4096;
         let mut blocks: Vec<Vec<&mut [f32]>> = (0..pixels.div_ceil(BLOCK))
-            .map(|_| Vec::with_capacity(c + 4))
+            .map(|_| Vec::with_capacity(C + 4))
             .collect();
         for (i, plane) in v.chunks_mut(n).enumerate() {
-            if i == c + 3 {
+            if i == C + 3 {
                 plane.fill(f32::NEG_INFINITY);
             }
             for (b, part) in plane[..pixels].chunks_mut(BLOCK).enumerate() {
@@ -543,24 +556,24 @@ impl Planes {
         }
         blocks.into_par_iter().enumerate().for_each(|(b, mut out)| {
             let p0 = b * BLOCK;
-            for j in 0..out[0].len() {
-                let pi = p0 + j;
-                let g = &go[pi * (c + 1)..(pi + 1) * (c + 1)];
-                let st = &prep.pix[pi * pstride..(pi + 1) * pstride];
+            let len = out[0].len();
+            let gs = go[p0 * (C + 1)..(p0 + len) * (C + 1)].chunks_exact(C + 1);
+            let sts = prep.pix[p0 * pstride..(p0 + len) * pstride].chunks_exact(pstride);
+            for (j, (g, st)) in gs.zip(sts).enumerate() {
                 // Pixels no face reaches (empty tiles leave Z = 0) have no pairs: skipped
                 // too.
                 if g.iter().all(|&x| x == 0.0) || !(st[1] > 0.0) {
                     continue;
                 }
                 let mut gi = 0.0;
-                for ch in 0..c {
-                    out[ch][j] = g[ch] as f32;
-                    gi += g[ch] * st[PIX_STATS + ch];
+                for ch in 0..C {
+                    out[ch][j] = g[ch];
+                    gi += g[ch] as f64 * st[PIX_STATS + ch];
                 }
-                out[c][j] = (g[c] * st[2]) as f32;
-                out[c + 1][j] = gi as f32;
-                out[c + 2][j] = (1.0 / st[1]) as f32;
-                out[c + 3][j] = (1.0 - st[0]) as f32;
+                out[C][j] = (g[C] as f64 * st[2]) as f32;
+                out[C + 1][j] = gi as f32;
+                out[C + 2][j] = (1.0 / st[1]) as f32;
+                out[C + 3][j] = (1.0 - st[0]) as f32;
             }
         });
         Self { v, n }
