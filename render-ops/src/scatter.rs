@@ -40,12 +40,12 @@ pub(crate) fn scatter_by_vertex<A: Send>(
 /// Adds per-face-corner values into per-vertex rows (`width` values per vertex) in a fixed
 /// order: `items()` yields `(face, vals)`, `vals` holding `width` values for each of the face's
 /// three corners (`3 * width`), which are added into the rows of the face's vertices. Every
-/// vertex sums its contributions in the order of `items` ([`scatter_by_vertex`]), so the result
-/// is bit-identical for any number of threads.
+/// vertex sums its contributions in the order of `items` (corners in order,
+/// [`scatter_vertex_rows`]), so the result is bit-identical for any number of threads.
 pub(crate) fn scatter_face_corners<'a, I>(
     acc: &mut [f64],
     width: usize,
-    faces: &[[u32; 3]],
+    faces: &'a [[u32; 3]],
     items: impl Fn() -> I + Sync,
 ) where
     I: Iterator<Item = (u32, &'a [f64])>,
@@ -53,18 +53,13 @@ pub(crate) fn scatter_face_corners<'a, I>(
     if width == 0 {
         return;
     }
-    scatter_by_vertex(acc, width, |vr, out| {
-        for (fi, vals) in items() {
-            for (m, &v) in faces[fi as usize].iter().enumerate() {
-                let v = v as usize;
-                if vr.contains(&v) {
-                    let row = &mut out[(v - vr.start) * width..][..width];
-                    for (o, x) in row.iter_mut().zip(&vals[m * width..(m + 1) * width]) {
-                        *o += x;
-                    }
-                }
-            }
-        }
+    scatter_vertex_rows(acc, width, || {
+        items().flat_map(move |(fi, vals)| {
+            faces[fi as usize]
+                .iter()
+                .zip(vals.chunks_exact(width))
+                .map(|(&v, row)| (v, row))
+        })
     });
 }
 

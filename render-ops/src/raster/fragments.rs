@@ -622,30 +622,11 @@ unsafe fn write_run_avx2<T: Real, const PERSP: bool, const DERIV: bool>(
         };
         let face = rec.face;
         let pick = |x: &[[f64; L]; 3], l: usize| [x[0][l], x[1][l], x[2][l]];
-        if ok == (1 << L) - 1 {
-            for l in 0..lanes {
-                // SAFETY: slot `pos + j + l` is one of this run's (the caller's contract).
-                unsafe {
-                    let (i, conv) = (pos + j + l, |x: [f64; 3]| x.map(T::from_f64c));
-                    out.fragment(
-                        i,
-                        face,
-                        conv(pick(&bary, l)),
-                        T::from_f64c(depth[j + l]),
-                        T::from_f64c(vd[l]),
-                    );
-                    if DERIV {
-                        out.derivatives(i, conv(pick(&dx, l)), conv(pick(&dy, l)));
-                    }
-                }
-            }
-        } else {
-            for l in 0..lanes {
-                let (b, d, x, y) = (pick(&bary, l), depth[j + l], pick(&dx, l), pick(&dy, l));
-                let ok = ok & (1 << l) != 0;
-                // SAFETY: slot `pos + j + l` is one of this run's (the caller's contract).
-                unsafe { store::<T, DERIV>(out, pos + j + l, face, b, d, vd[l], x, y, ok) };
-            }
+        for l in 0..lanes {
+            let (b, d, x, y) = (pick(&bary, l), depth[j + l], pick(&dx, l), pick(&dy, l));
+            let ok = ok & (1 << l) != 0;
+            // SAFETY: slot `pos + j + l` is one of this run's (the caller's contract).
+            unsafe { store::<T, DERIV>(out, pos + j + l, face, b, d, vd[l], x, y, ok) };
         }
         j += L;
     }
