@@ -42,11 +42,11 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
         let mut img = Vec::with_capacity(n);
         let out = &mut img.spare_capacity_mut()[..n];
         match c {
-            3 => blend_rows::<T, 3>(f, cs, &self.background, out),
-            1 => blend_rows::<T, 1>(f, cs, &self.background, out),
-            2 => blend_rows::<T, 2>(f, cs, &self.background, out),
-            4 => blend_rows::<T, 4>(f, cs, &self.background, out),
-            _ => blend_rows::<T, 0>(f, cs, &self.background, out),
+            3 => blend_rows::<T, 3, 4>(f, cs, &self.background, out),
+            1 => blend_rows::<T, 1, 2>(f, cs, &self.background, out),
+            2 => blend_rows::<T, 2, 3>(f, cs, &self.background, out),
+            4 => blend_rows::<T, 4, 5>(f, cs, &self.background, out),
+            _ => blend_rows::<T, 0, 1>(f, cs, &self.background, out),
         }
         // SAFETY: `blend_rows` wrote all `n` values of every pixel.
         unsafe { img.set_len(n) };
@@ -94,7 +94,7 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
 /// The image rows of the hard blend for `C` channels (`C = 0`: `bg.len()`, known only at run
 /// time), in parallel over rows, writing every value of the (uninitialised) image.
 /// `cs` holds `C` values per fragment (`bg.len()` when `C = 0`).
-fn blend_rows<T: Real, const C: usize>(
+fn blend_rows<T: Real, const C: usize, const P: usize>(
     f: &Fragments<T>,
     cs: &[T],
     bg: &[T],
@@ -102,29 +102,32 @@ fn blend_rows<T: Real, const C: usize>(
 ) {
     let w = f.width;
     if C > 0 {
-        // Colour rows as `[T; C]` arrays; each pixel reads the offset where the next one
-        // starts once.
+        debug_assert_eq!(P, C + 1);
+        // Colour rows as `[T; C]` arrays, pixels as `[T; C + 1]`: each image row is first
+        // the background (alpha 0), then each covered pixel gets its fragment's colour and
+        // alpha 1; each pixel reads the offset where the next one starts once.
         let cs = as_arrays::<T, C>(cs);
-        let bg: &[T; C] = bg.try_into().expect("C background channels");
-        img.par_chunks_mut(w * (C + 1))
-            .enumerate()
-            .for_each(|(row, out)| {
-                let offs = &f.offsets[row * w..=(row + 1) * w];
-                let mut s = offs[0] as usize;
-                for (px, &e) in out.chunks_exact_mut(C + 1).zip(&offs[1..]) {
-                    let e = e as usize;
-                    let (src, alpha) = if s < e {
-                        (&cs[s], T::one())
-                    } else {
-                        (bg, T::zero())
-                    };
+        let mut empty = [T::zero(); P];
+        empty[..C].copy_from_slice(bg);
+        // Background first (a copy of one empty row), then the covered pixels.
+        let empty_row = vec![empty.map(MaybeUninit::new); w];
+        let pixels = crate::rasterize::as_arrays_mut::<MaybeUninit<T>, P>(img);
+        pixels.par_chunks_mut(w).enumerate().for_each(|(row, out)| {
+            let offs = &f.offsets[row * w..=(row + 1) * w];
+            out.copy_from_slice(&empty_row);
+            let mut s = offs[0] as usize;
+            for (px, &e) in out.iter_mut().zip(&offs[1..]) {
+                let e = e as usize;
+                if s < e {
+                    let c = &cs[s];
                     for ch in 0..C {
-                        px[ch].write(src[ch]);
+                        px[ch] = MaybeUninit::new(c[ch]);
                     }
-                    px[C].write(alpha);
-                    s = e;
+                    px[C] = MaybeUninit::new(T::one());
                 }
-            });
+                s = e;
+            }
+        });
         return;
     }
     let c = bg.len();

@@ -8,7 +8,8 @@
 //! gradients; composing it from `sqrt`, `sin`, `/` would give NaN at zero.
 
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result, Tape, Tensor, Var};
-use ndarray::{Array2, ArrayD, IxDyn};
+use ndarray::{ArrayD, IxDyn};
+use rayon::prelude::*;
 
 /// Coefficients of Rodrigues' formula `R = I + a(θ) K + b(θ) K²` (K the cross-product matrix
 /// of the unnormalised axis-angle vector r, θ = |r|), and `a'(θ)/θ`, `b'(θ)/θ`; series for
@@ -185,15 +186,78 @@ pub fn rigid_transform<'t, T: Real>(
     points.matmul(rot.t()) + trans
 }
 
+/// `p -> M [p, 1]` for points [N, 3] and a constant 4x4 row-major matrix `M`, one fused op
+/// (no homogeneous copy of the points, no matrix product op): each output row is computed in
+/// `f64` and rounded once; the backward is `dL/dp = (dL/dclip) M[:, :3]`.
+struct ClipOp {
+    matrix: [[f64; 4]; 4],
+}
+
+/// Rows per parallel task of [`ClipOp`].
+const CLIP_ROWS: usize = 4096;
+
+impl<T: Real> Op<T> for ClipOp {
+    fn name(&self) -> &'static str {
+        "to_clip"
+    }
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+        let p = inputs[0].as_standard_layout();
+        if p.ndim() != 2 || p.shape()[1] != 3 {
+            return Err(AutodiffError::shape(
+                "to_clip",
+                &[p.shape()],
+                "points must be [N, 3]",
+            ));
+        }
+        let n = p.shape()[0];
+        let ps = p.as_slice().expect("standard");
+        let m = &self.matrix;
+        let mut out = vec![T::zero(); 4 * n];
+        out.par_chunks_mut(4 * CLIP_ROWS)
+            .zip(ps.par_chunks(3 * CLIP_ROWS))
+            .for_each(|(o, p)| {
+                for (o, p) in o.chunks_exact_mut(4).zip(p.chunks_exact(3)) {
+                    let (x, y, z) = (p[0].to_f64c(), p[1].to_f64c(), p[2].to_f64c());
+                    for (o, r) in o.iter_mut().zip(m) {
+                        *o = T::from_f64c(r[0] * x + r[1] * y + r[2] * z + r[3]);
+                    }
+                }
+            });
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[n, 4]), out).expect("n x 4")
+        ])
+    }
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+        if !ctx.needs_grad[0] {
+            return Ok(vec![None]);
+        }
+        let g = ctx.grad_outputs[0].as_standard_layout();
+        let gs = g.as_slice().expect("standard");
+        let n = gs.len() / 4;
+        let m = &self.matrix;
+        let mut out = vec![T::zero(); 3 * n];
+        out.par_chunks_mut(3 * CLIP_ROWS)
+            .zip(gs.par_chunks(4 * CLIP_ROWS))
+            .for_each(|(o, g)| {
+                for (o, g) in o.chunks_exact_mut(3).zip(g.chunks_exact(4)) {
+                    let g = [g[0], g[1], g[2], g[3]].map(|v| v.to_f64c());
+                    for (i, o) in o.iter_mut().enumerate() {
+                        *o = T::from_f64c(
+                            g[0] * m[0][i] + g[1] * m[1][i] + g[2] * m[2][i] + g[3] * m[3][i],
+                        );
+                    }
+                }
+            });
+        Ok(vec![Some(
+            ArrayD::from_shape_vec(IxDyn(&[n, 3]), out).expect("n x 3"),
+        )])
+    }
+}
+
 /// Homogeneous clip coordinates [N, 4] of points [N, 3] under a constant 4x4 row-major matrix
-/// (e.g. `projection * view * model`).
+/// (e.g. `projection * view * model`): `clip = M [p, 1]`.
 pub fn to_clip<'t, T: Real>(points: Var<'t, T>, matrix: &[[f64; 4]; 4]) -> Var<'t, T> {
-    let t = points.tape();
-    let n = points.shape().first().copied().unwrap_or(0);
-    let ones = t.constant(ArrayD::from_elem(IxDyn(&[n, 1]), T::one()));
-    let homo = t.concat(&[points, ones], 1);
-    let mt = Array2::from_shape_fn((4, 4), |(i, j)| T::from_f64c(matrix[j][i])).into_dyn();
-    homo.matmul(t.constant(mt))
+    points.tape().apply(ClipOp { matrix: *matrix }, &[points])
 }
 
 /// Clip coordinates [N, 4] of view-space points [N, 3] (camera looking down -z) under an
@@ -234,7 +298,7 @@ mod tests {
 
     fn orthonormal(m: &Tensor<f64>) -> f64 {
         let m2 = m.clone().into_dimensionality::<ndarray::Ix2>().unwrap();
-        let e = m2.t().dot(&m2) - Array2::<f64>::eye(3);
+        let e = m2.t().dot(&m2) - ndarray::Array2::<f64>::eye(3);
         e.iter().fold(0.0f64, |a, v| a.max(v.abs()))
     }
 
@@ -301,6 +365,54 @@ mod tests {
         )
         .unwrap();
         assert!(rep.passed(), "{rep}");
+    }
+
+    #[test]
+    fn to_clip_matches_homogeneous_product_and_gradients_check() {
+        let mut rng = Rng::new(7);
+        let p: Tensor<f64> = rng.uniform_tensor(&[9, 3], -2.0, 2.0);
+        let m = [
+            [1.2, -0.3, 0.5, 0.1],
+            [0.2, 1.7, -0.4, -0.6],
+            [0.3, 0.1, -1.1, 2.5],
+            [0.05, -0.2, -1.0, 3.0],
+        ];
+        let tape = Tape::<f64>::new();
+        let c = to_clip(tape.var(p.clone(), false), &m).value().unwrap();
+        assert_eq!(c.shape(), [9, 4]);
+        for n in 0..9 {
+            for j in 0..4 {
+                let want =
+                    m[j][0] * p[[n, 0]] + m[j][1] * p[[n, 1]] + m[j][2] * p[[n, 2]] + m[j][3];
+                assert!((c[[n, j]] - want).abs() <= 1e-14 * (1.0 + want.abs()));
+            }
+        }
+        let rep = gradcheck(
+            |_t: &Tape<f64>, v| {
+                let c = to_clip(v[0], &m);
+                (c.slice(1, 0, 3) / c.slice(1, 3, 4)).square().sum()
+            },
+            std::slice::from_ref(&p),
+            &GradcheckOptions::default(),
+        )
+        .unwrap();
+        assert!(rep.passed(), "{rep}");
+        // Wrong shapes are typed errors.
+        let bad = to_clip(tape.var(ArrayD::zeros(IxDyn(&[4, 2])), false), &m);
+        assert!(bad.value().is_err());
+        // f32 rounds the f64 result once.
+        let t32 = Tape::<f32>::new();
+        let c32 = to_clip(t32.var(p.mapv(|x| x as f32), false), &m)
+            .value()
+            .unwrap();
+        for (a, b) in c32.iter().zip(
+            to_clip(tape.var(p.mapv(|x| x as f32 as f64), false), &m)
+                .value()
+                .unwrap()
+                .iter(),
+        ) {
+            assert_eq!(*a, *b as f32);
+        }
     }
 
     #[test]

@@ -89,8 +89,12 @@ pub(crate) fn bin_faces(
     let tiles_x = s.width.div_ceil(TILE_SIZE);
     let tiles_y = s.height.div_ceil(TILE_SIZE);
     let nt = tiles_x * tiles_y;
-    // Keep chunks x tiles counters bounded (about 4M) for huge images.
-    let chunk = 4096usize
+    // About 16 chunks or more (of 512 to 4096 faces), so that small meshes also split evenly
+    // over the threads; larger chunks keep chunks x tiles counters bounded (about 4M) for
+    // huge images.
+    let chunk = (faces.len() / 16)
+        .next_power_of_two()
+        .clamp(512, 4096)
         .max((faces.len() as u128 * nt as u128 / (1u128 << 22)) as usize + 1)
         .next_power_of_two();
     let shift = chunk.trailing_zeros();

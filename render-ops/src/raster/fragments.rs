@@ -608,6 +608,68 @@ unsafe fn write_run_avx2<T: Real, const PERSP: bool, const DERIV: bool>(
             mag = _mm256_add_pd(mag, _mm256_add_pd(sum3(dx), sum3(dy)));
         }
         let ok = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(mag, mv));
+        if std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>() && ok == 0b1111 {
+            // f32 output, every lane in range: rounded four at a time (the same
+            // round-to-nearest as `from_f64c`) and written from registers. Each slot's three
+            // barycentrics (and derivatives) go out as one 16-byte store whose fourth value
+            // falls on the next slot and is overwritten there; the last lane stores exactly
+            // 12 bytes.
+            let i = pos + j;
+            let live = _mm256_cmpgt_epi64(
+                _mm256_set1_epi64x(lanes as i64),
+                _mm256_setr_epi64x(0, 1, 2, 3),
+            );
+            // SAFETY: `depth` holds the run's `n` depths, lanes `..lanes` of which are read
+            // (masked-off lanes are not accessed).
+            let d = unsafe { _mm256_maskload_pd(depth.as_ptr().add(j), live) };
+            // Rows `[x0_l, x1_l, x2_l, pad_l]` of four lanes, written as `[f32; 3]` slots.
+            let rows3 = |x: [__m256d; 3], pad: __m128, dst: *mut f32| {
+                let (mut r0, mut r1, mut r2, mut r3) = (
+                    _mm256_cvtpd_ps(x[0]),
+                    _mm256_cvtpd_ps(x[1]),
+                    _mm256_cvtpd_ps(x[2]),
+                    pad,
+                );
+                _MM_TRANSPOSE4_PS(&mut r0, &mut r1, &mut r2, &mut r3);
+                let rows = [r0, r1, r2, r3];
+                for (l, &r) in rows.iter().enumerate().take(lanes) {
+                    // SAFETY: slot `i + l` is the caller's; a 16-byte store reaches into slot
+                    // `i + l + 1`, also the caller's, which is written after it.
+                    unsafe {
+                        let p = dst.add(3 * (i + l));
+                        if l + 1 < lanes {
+                            _mm_storeu_ps(p, r);
+                        } else {
+                            let lo = _mm_cvtsi128_si64(_mm_castps_si128(r));
+                            p.cast::<i64>().write_unaligned(lo);
+                            _mm_store_ss(p.add(2), _mm_movehl_ps(r, r));
+                        }
+                    }
+                }
+            };
+            let vd32 = _mm256_cvtpd_ps(vd);
+            rows3(bary, vd32, out.bary.cast());
+            // Lanes `..lanes` of depth, view depth and face id, by masked stores.
+            let mask = _mm_cmpgt_epi32(_mm_set1_epi32(lanes as i32), _mm_setr_epi32(0, 1, 2, 3));
+            // SAFETY: slots `i..i + lanes` are the caller's; `T` is `f32`; masked-off lanes are
+            // neither read nor written.
+            unsafe {
+                _mm_maskstore_ps(out.depth.cast::<f32>().add(i), mask, _mm256_cvtpd_ps(d));
+                _mm_maskstore_ps(out.view_depth.cast::<f32>().add(i), mask, vd32);
+                _mm_maskstore_epi32(
+                    out.face.add(i).cast(),
+                    mask,
+                    _mm_set1_epi32(rec.face as i32),
+                );
+            }
+            if DERIV {
+                let z = _mm_setzero_ps();
+                rows3(dx, z, out.dx.cast());
+                rows3(dy, z, out.dy.cast());
+            }
+            j += L;
+            continue;
+        }
         let spill = |x: __m256d| {
             let mut r = [0.0; L];
             // SAFETY: `r` holds four f64.

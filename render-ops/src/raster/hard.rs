@@ -214,65 +214,127 @@ fn z_test_face(
     if !(r0 <= r1) {
         return;
     }
-    let (c0, c1) = (r.c0 as f64, r.c1 as f64);
-    for row in ceil_u(r0)..floor_u(r1) + 1 {
+    let spans = RowSpans {
+        lal,
+        lbe,
+        ral,
+        rbe,
+        rows: ceil_u(r0)..floor_u(r1) + 1,
+        c0: r.c0 as f64,
+        c1: r.c1 as f64,
+    };
+    #[cfg(target_arch = "x86_64")]
+    if k == 1 && avx2 {
+        // SAFETY: `avx2` is set only when the CPU has AVX2 (`use_avx2`).
+        unsafe { z_test_rows_k1(st, dz, &spans, rect, verts, sc, li) };
+        return;
+    }
+    for row in spans.rows.clone() {
+        let Some((cl, cr)) = spans.row(row) else {
+            continue;
+        };
         let rf = row as f64;
-        let mut lo = c0;
-        let mut hi = c1;
-        for i in 0..3 {
-            let ql = lal[i] + lbe[i] * rf;
-            let qr = ral[i] + rbe[i] * rf;
-            lo = if ql > lo { ql } else { lo };
-            hi = if qr < hi { qr } else { hi };
-        }
-        if !(lo <= hi) {
-            continue;
-        }
-        // c0 <= lo <= hi <= c1 here.
-        let (cl, cr) = (ceil_u(lo), floor_u(hi));
-        if cl > cr {
-            continue;
-        }
         let tr = st.row(rf);
         let dr = dz[1] * rf + dz[2];
         let lr = (row - rect.r0) as usize;
         sc.touch(lr, cl - rect.c0, cr - rect.c0);
         let first = lr * TILE_SIZE + (cl - rect.c0) as usize;
-        #[cfg(target_arch = "x86_64")]
-        if k == 1 && avx2 {
-            // The K-buffer has SPAN_LANES slots of padding past the last pixel.
-            let n = (cr - cl) as usize + 1;
-            let slots = first..first + n.next_multiple_of(SPAN_LANES);
-            // SAFETY: `avx2` is set only when the CPU has AVX2 (`use_avx2`).
-            let (filled, ambiguous) = unsafe {
-                z_test_span_k1(
-                    st,
-                    &tr,
-                    dr,
-                    dz[0],
-                    cl,
-                    n,
-                    &mut sc.depth[slots.clone()],
-                    &mut sc.idx[slots],
-                    li,
-                )
-            };
-            sc.filled[lr] += filled;
-            if ambiguous {
-                // The pixels the filter could not settle, exactly (rare: pixels within a few
-                // ulps of an edge); the others were settled above.
-                for (j, col) in (cl..cr + 1).enumerate() {
-                    if ambiguous_pixel(st, &st.eval(col as f64, &tr)) {
-                        let p = first + j;
-                        test_pixel(st, verts, sc, 1, li, &tr, dr, dz[0], col as f64, rf, p, lr);
-                    }
-                }
-            }
-            continue;
-        }
         for (j, col) in (cl..cr + 1).enumerate() {
             let p = (first + j) * k;
             test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr);
+        }
+    }
+}
+
+/// The rows of a face's box (within one tile) and, per row, the columns that may be covered
+/// ([`z_test_face`]): `al_i + be_i row` bounds from the left (`lal`, `lbe`) or right (`ral`,
+/// `rbe`), within `c0..=c1`.
+struct RowSpans {
+    lal: [f64; 3],
+    lbe: [f64; 3],
+    ral: [f64; 3],
+    rbe: [f64; 3],
+    rows: std::ops::Range<u32>,
+    c0: f64,
+    c1: f64,
+}
+
+impl RowSpans {
+    /// The first and last column of row `row` that may be covered, if any.
+    #[inline(always)]
+    fn row(&self, row: u32) -> Option<(u32, u32)> {
+        let rf = row as f64;
+        let mut lo = self.c0;
+        let mut hi = self.c1;
+        for i in 0..3 {
+            let ql = self.lal[i] + self.lbe[i] * rf;
+            let qr = self.ral[i] + self.rbe[i] * rf;
+            lo = if ql > lo { ql } else { lo };
+            hi = if qr < hi { qr } else { hi };
+        }
+        if !(lo <= hi) {
+            return None;
+        }
+        // c0 <= lo <= hi <= c1 here.
+        let (cl, cr) = (ceil_u(lo), floor_u(hi));
+        (cl <= cr).then_some((cl, cr))
+    }
+}
+
+/// The row loop of [`z_test_face`] for `K = 1` with AVX2: each row's span goes through
+/// [`z_test_span_k1`] (inlined here, with the face's constants kept across rows), and the
+/// pixels it leaves ambiguous through the exact [`test_pixel`].
+///
+/// # Safety
+/// The CPU must support AVX2; `sc` is a `K = 1` scratch.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn z_test_rows_k1(
+    st: &Setup,
+    dz: &[f64; 3],
+    spans: &RowSpans,
+    rect: &Rect,
+    verts: &[[f64; 4]],
+    sc: &mut Scratch,
+    li: u32,
+) {
+    for row in spans.rows.clone() {
+        let Some((cl, cr)) = spans.row(row) else {
+            continue;
+        };
+        let rf = row as f64;
+        let tr = st.row(rf);
+        let dr = dz[1] * rf + dz[2];
+        let lr = (row - rect.r0) as usize;
+        sc.touch(lr, cl - rect.c0, cr - rect.c0);
+        let first = lr * TILE_SIZE + (cl - rect.c0) as usize;
+        // The K-buffer has SPAN_LANES slots of padding past the last pixel.
+        let n = (cr - cl) as usize + 1;
+        let slots = first..first + n.next_multiple_of(SPAN_LANES);
+        // SAFETY: the CPU has AVX2 (the caller's contract).
+        let (filled, ambiguous) = unsafe {
+            z_test_span_k1(
+                st,
+                &tr,
+                dr,
+                dz[0],
+                cl,
+                n,
+                &mut sc.depth[slots.clone()],
+                &mut sc.idx[slots],
+                li,
+            )
+        };
+        sc.filled[lr] += filled;
+        if ambiguous {
+            // The pixels the filter could not settle, exactly (rare: pixels within a few
+            // ulps of an edge); the others were settled above.
+            for (j, col) in (cl..cr + 1).enumerate() {
+                if ambiguous_pixel(st, &st.eval(col as f64, &tr)) {
+                    let p = first + j;
+                    test_pixel(st, verts, sc, 1, li, &tr, dr, dz[0], col as f64, rf, p, lr);
+                }
+            }
         }
     }
 }
