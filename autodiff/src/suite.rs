@@ -452,6 +452,8 @@ pub fn builtin_cases() -> Vec<Case> {
         case!("sum_axes/neg-axis", [[2, 3, 4]], [U], |t, x| x[0]
             .sum_axes(&[-1, 0], true)),
         case!("mean", [[3, 4]], [U], |t, x| x[0].mean()),
+        case!("sum_squared_diff", [[3, 4], [3, 4]], [U, U], |t, x| x[0]
+            .sum_squared_diff(x[1])),
         case!("mean_axes/keepdim", [[2, 3, 4]], [U], |t, x| x[0]
             .mean_axes(&[1], true)),
         case!("max_axis", [[3, 5]], [Distinct(-2.0, 2.0)], |t, x| x[0]

@@ -10,7 +10,7 @@ use ndarray::ArrayD;
 use crate::ops::elementwise::{Binary, BinaryOp, MulSelfOp, Unary, UnaryOp, WhereOp};
 use crate::ops::index::{GatherOp, IndexSelectOp, ScatterAddOp};
 use crate::ops::linalg::MatMulOp;
-use crate::ops::reduce::{LogSumExpOp, MaxOp, SumOp};
+use crate::ops::reduce::{LogSumExpOp, MaxOp, SumOp, SumSquaredDiffOp};
 use crate::ops::shape::{BroadcastToOp, ConcatOp, PermuteOp, ReshapeOp, SliceOp, StackOp};
 use crate::ops::vector::{CrossOp, NormalizeOp};
 use crate::tape::{Tape, Var};
@@ -114,6 +114,12 @@ impl<'t, T: Real> Var<'t, T> {
     /// Sum of all elements (0-dimensional result).
     pub fn sum(self) -> Self {
         self.tape().apply(SumOp::new(None, false, false), &[self])
+    }
+    /// `sum((self - other)^2)` over all elements (0-dimensional result), one fused op: the
+    /// squared-error loss without the difference and square tensors of
+    /// `(self - other).square().sum()`. Both must have the same shape (no broadcasting).
+    pub fn sum_squared_diff(self, other: Self) -> Self {
+        self.tape().apply(SumSquaredDiffOp, &[self, other])
     }
     /// Mean of all elements.
     pub fn mean(self) -> Self {

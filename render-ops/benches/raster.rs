@@ -121,9 +121,9 @@ fn bench_backward(c: &mut Criterion) {
 
 /// The whole hard pipeline as DEODR's `render` does it (world positions -> clip space ->
 /// rasterize -> interpolate vertex colours -> composite over the background), and the same
-/// plus the backward of `sum((image - target)^2)` to positions and colours (DEODR's
-/// `render_backward`), f32, with culling (DEODR's setting) and without barycentric
-/// derivatives (nothing reads them) on 1 and 2 threads.
+/// plus the backward of `sum((image - target)^2)` (the fused `Var::sum_squared_diff`) to
+/// positions and colours (DEODR's `render_backward`), f32, with culling (DEODR's setting) and
+/// without barycentric derivatives (nothing reads them) on 1 and 2 threads.
 fn bench_pipeline(c: &mut Criterion) {
     let mut g = c.benchmark_group("render_hard_f32");
     g.sample_size(20);
@@ -155,7 +155,7 @@ fn bench_pipeline(c: &mut Criterion) {
                 let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s)?;
                 let img = blend_hard(interpolate(cv, &r)?, &r.fragments, &[0.0; 3])?;
                 if grad {
-                    let loss = (img - tape.constant(target.clone())).square().sum();
+                    let loss = img.sum_squared_diff(tape.constant(target.clone()));
                     let gr = tape.backward(loss)?;
                     Ok::<_, render_ops::error::RenderError>(gr.get(p).map(|t| t.len()))
                 } else {
@@ -212,7 +212,7 @@ fn bench_approx(c: &mut Criterion, group: &str, method: ApproxFn) {
                 let cv = tape.var(col.clone(), grad);
                 let img = method(to_clip(p, &m), cv, faces.clone(), &s)?;
                 if grad {
-                    let loss = (img - tape.constant(target.clone())).square().sum();
+                    let loss = img.sum_squared_diff(tape.constant(target.clone()));
                     let gr = tape.backward(loss)?;
                     Ok::<_, render_ops::error::RenderError>(gr.get(p).map(|t| t.len()))
                 } else {

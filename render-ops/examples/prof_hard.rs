@@ -7,7 +7,9 @@
 //! valgrind --tool=callgrind target/release/examples/prof_hard SIZE ITERS [SUBDIV]
 //! ```
 //!
-//! `SUBDIV` 4 (default) is the 5k-face sphere. Prints ms per iteration and a checksum of the
+//! `SUBDIV` 4 (default) is the 5k-face sphere. `GRAD=1` adds the backward of
+//! `sum((image - 0.25)^2)` to positions and colours (`render_hard_f32/forward_backward`), and
+//! the checksum then sums the gradients. Prints ms per iteration and a checksum of the
 //! images (equal checksums: equal images up to summation order). Subtract a run with
 //! `ITERS = 0` (scene setup) from the instruction counts; the checksum itself costs about
 //! 10 instructions per image value.
@@ -55,6 +57,8 @@ fn main() {
         barycentric_derivatives: std::env::var("DERIVS").is_ok_and(|v| v == "1"),
         ..RasterSettings::new(size, size)
     };
+    let grad = std::env::var("GRAD").is_ok_and(|v| v == "1");
+    let target = ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
@@ -64,12 +68,20 @@ fn main() {
     for _ in 0..iters {
         pool.install(|| {
             let tape = Tape::<f32>::new();
-            let p = tape.var(pos.clone(), false);
-            let cv = tape.var(col.clone(), false);
+            let p = tape.var(pos.clone(), grad);
+            let cv = tape.var(col.clone(), grad);
             let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s).unwrap();
             let img = blend_hard(interpolate(cv, &r).unwrap(), &r.fragments, &[0.0; 3]).unwrap();
-            let im = img.value().unwrap();
-            acc += im.iter().map(|&x| x as f64).sum::<f64>();
+            if grad {
+                let loss = img.sum_squared_diff(tape.constant(target.clone()));
+                let g = tape.backward(loss).unwrap();
+                for v in [p, cv] {
+                    acc += g.get(v).unwrap().iter().map(|&x| x as f64).sum::<f64>();
+                }
+            } else {
+                let im = img.value().unwrap();
+                acc += im.iter().map(|&x| x as f64).sum::<f64>();
+            }
         });
     }
     eprintln!(

@@ -660,9 +660,7 @@ pub fn method_gradient(
     let tape = Tape::new();
     let leaf = pose_leaf(&tape, u, true);
     let img = render_pose(scene, pose, &tape, leaf)?;
-    let loss = (img - tape.constant(target.clone().into_dyn()))
-        .square()
-        .sum();
+    let loss = img.sum_squared_diff(tape.constant(target.clone().into_dyn()));
     let grads = tape.backward(loss)?;
     let g = grads.wrt(leaf);
     let out = std::array::from_fn(|k| g[k]);

@@ -49,7 +49,7 @@ pub fn run(scene: &Path, target: &Path, wrt: WrtArg, out: &Path) -> Result<ExitC
     };
     let img = scene.render(&vars)?;
     let img = if ts[2] == 3 { img.slice(2, 0, 3) } else { img };
-    let loss = (img - tape.constant(target_img.into_dyn())).square().sum();
+    let loss = img.sum_squared_diff(tape.constant(target_img.into_dyn()));
     let grads = tape.backward(loss)?;
     println!("loss {:.17e}", loss.item()?);
     let g = match wrt {
