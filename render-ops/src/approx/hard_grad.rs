@@ -19,7 +19,7 @@ use autodiff::Real;
 use rayon::prelude::*;
 
 use crate::raster::{FaceVjp, Fragments, RunVjp};
-use crate::scatter::scatter_vertex_rows;
+use crate::scatter::{scatter_vertex_rows, IndexMap};
 
 /// Fragments per parallel chunk.
 const CHUNK: usize = 4096;
@@ -37,57 +37,6 @@ struct ChunkSums {
     verts: Vec<u32>,
     pos: Vec<[f64; 4]>,
     attr: Vec<f64>,
-}
-
-/// A map from `u32` keys (below `u32::MAX`) to dense indices `0, 1, ..` in order of insertion
-/// (open addressing), cleared in time proportional to its length.
-struct IndexMap {
-    /// `(key, index)` per slot, `key == u32::MAX` where empty.
-    slots: Vec<(u32, u32)>,
-    /// The occupied slots, in order of insertion.
-    used: Vec<u32>,
-    /// `32 - log2(slots.len())`: the hash keeps the top bits of the product.
-    shift: u32,
-}
-
-impl IndexMap {
-    /// A map for at most `max_len` keys (kept at most half full).
-    fn new(max_len: usize) -> Self {
-        let cap = (2 * max_len).next_power_of_two().max(16);
-        IndexMap {
-            slots: vec![(u32::MAX, 0); cap],
-            used: Vec::with_capacity(max_len),
-            shift: 32 - cap.trailing_zeros(),
-        }
-    }
-
-    /// The index of `key`, and whether it was inserted by this call (as index `len - 1`).
-    #[inline]
-    fn index(&mut self, key: u32) -> (usize, bool) {
-        debug_assert!(key != u32::MAX && self.used.len() < self.slots.len() / 2);
-        let mask = self.slots.len() - 1;
-        let mut s = (key.wrapping_mul(0x9E37_79B9) >> self.shift) as usize;
-        loop {
-            let (k, v) = self.slots[s];
-            if k == key {
-                return (v as usize, false);
-            }
-            if k == u32::MAX {
-                let v = self.used.len();
-                self.slots[s] = (key, v as u32);
-                self.used.push(s as u32);
-                return (v, true);
-            }
-            s = (s + 1) & mask;
-        }
-    }
-
-    fn clear(&mut self) {
-        for &s in &self.used {
-            self.slots[s as usize].0 = u32::MAX;
-        }
-        self.used.clear();
-    }
 }
 
 /// Per-thread scratch of the chunks: the faces met in the chunk (in order of first touch)

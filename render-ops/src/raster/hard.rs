@@ -9,7 +9,7 @@ use super::clip::{ceil_u, floor_u, to_screen, Rect};
 use super::edge::Setup;
 use super::fragments::{assemble, Fragments, TileFrags};
 use super::{par_first_index, validate_inputs, RasterError, RasterSettings, TILE_SIZE};
-use crate::scatter::scatter_face_corners;
+use crate::scatter::{scatter_face_corners, IndexMap};
 use crate::soft::simd::use_avx2;
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
@@ -519,11 +519,12 @@ fn test_pixel(
 /// `b = u / sum(u)`, `view_depth = 1 / sum(u)`, screen-space barycentrics `u_i w_i`, and
 /// `dL/dM = -M^-T (dL/du) u^T`.
 ///
-/// Contributions are computed in parallel over fixed chunks of 512 fragments; within a chunk
-/// the contributions of each run of consecutive fragments of one face are summed (in fragment
-/// order), and the runs' sums are added into the output in fragment order, so the result is
-/// bit-identical for any number of threads. Divisions by `det M` are products with its
-/// reciprocal, computed once per face.
+/// Contributions are computed in parallel over fixed chunks of 4096 fragments; within a chunk
+/// the contributions of each face are summed (in fragment order; without depth gradients in
+/// the factored form of [`RunVjp`], multiplied out once per face and chunk), and the faces'
+/// sums are added into the output in chunk order, so the result is bit-identical for any
+/// number of threads. Divisions by `det M` are products with its reciprocal, computed once per
+/// face and chunk.
 ///
 /// # Errors
 /// As [`rasterize`], plus gradient arrays whose lengths differ from `frags.len()` and fragments
@@ -573,78 +574,114 @@ pub fn rasterize_backward<T: Real>(
     }
 
     const BLOCK: usize = 1 << 15;
-    const CHUNK: usize = 512;
     let mut acc = vec![[0.0f64; 4]; clip.len()];
-    let (wf, hf) = (s.width as f64, s.height as f64);
     let depth_grads = grad_depth.is_some() || grad_view_depth.is_some();
+    // Pixel centres in NDC: `x = (col + 0.5) sx - 1`, `y = 1 - (row + 0.5) sy`.
+    let (sx, sy) = (2.0 / s.width as f64, 2.0 / s.height as f64);
     let mut start = 0;
     while start < n {
         let end = (start + BLOCK).min(n);
-        // Per chunk of fragments, one contribution per run of consecutive fragments of one
-        // face (their sum in fragment order): runs are found within fixed chunks, so the
-        // result does not depend on the thread count.
-        let runs: Vec<Vec<(u32, [[f64; 4]; 3])>> = (0..(end - start).div_ceil(CHUNK))
+        // Per fixed chunk of fragments, one contribution per face met in it (in order of first
+        // touch), the sum of its fragments' products in fragment order: without depth
+        // gradients the factored sum (`RunVjp`) multiplied out once per face and chunk. The
+        // chunking does not depend on the thread count.
+        let sums: Vec<Vec<(u32, [[f64; 4]; 3])>> = (0..(end - start).div_ceil(BWD_CHUNK))
             .into_par_iter()
-            .map(|ci| {
-                let i0 = start + ci * CHUNK;
-                let i1 = (i0 + CHUNK).min(end);
-                let mut out: Vec<(u32, [[f64; 4]; 3])> = Vec::new();
+            .map_init(BwdScratch::new, |sc, ci| {
+                let i0 = start + ci * BWD_CHUNK;
+                let i1 = (i0 + BWD_CHUNK).min(end);
+                sc.clear();
                 let mut p = frags.pixel_of(i0);
-                // Consecutive fragments (along a row) mostly share their face: keep its setup
-                // and, without depth gradients, the run's factored sum (`RunVjp`).
-                let mut cur: Option<(u32, FaceVjp)> = None;
-                let mut run_acc = RunVjp::default();
+                let (mut row, mut col) = (p / s.width, p % s.width);
+                let mut py = 1.0 - (row as f64 + 0.5) * sy;
+                // The previous fragment's face and entry: runs of one face skip the map.
+                let mut cur = (u32::MAX, 0usize);
                 for i in i0..i1 {
                     while frags.offsets[p + 1] as usize <= i {
                         p += 1;
-                    }
-                    let (row, col) = (p / s.width, p % s.width);
-                    let px = [
-                        2.0 * (col as f64 + 0.5) / wf - 1.0,
-                        1.0 - 2.0 * (row as f64 + 0.5) / hf,
-                    ];
-                    let fi = frags.face[i];
-                    if !matches!(&cur, Some((cf, _)) if *cf == fi) {
-                        if let (Some((_, fv)), false) = (&cur, depth_grads) {
-                            out.last_mut().expect("a run").1 =
-                                fv.finish(&run_acc, s.perspective_correct);
-                            run_acc = RunVjp::default();
+                        col += 1;
+                        if col == s.width {
+                            col = 0;
+                            row += 1;
+                            py = 1.0 - (row as f64 + 0.5) * sy;
                         }
-                        let f = faces[fi as usize];
-                        let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
-                        out.push((fi, [[0.0; 4]; 3]));
-                        cur = Some((fi, FaceVjp::new(&v)));
                     }
-                    let fv = &cur.as_ref().expect("a face").1;
+                    let px = [(col as f64 + 0.5) * sx - 1.0, py];
+                    let fi = frags.face[i];
+                    if fi != cur.0 {
+                        let (e, new) = sc.face_ix.index(fi);
+                        if new {
+                            let f = faces[fi as usize];
+                            let v = f.map(|vi| clip[vi as usize].map(|x| x.to_f64c()));
+                            sc.out.push((fi, [[0.0; 4]; 3]));
+                            sc.fv.push(FaceVjp::new(&v));
+                            sc.acc.push(RunVjp::default());
+                        }
+                        cur = (fi, e);
+                    }
+                    let e = cur.1;
                     let gb = grad_bary[i].map(|x| x.to_f64c());
                     if depth_grads {
                         let gd = grad_depth.map_or(0.0, |g| g[i].to_f64c());
                         let gw = grad_view_depth.map_or(0.0, |g| g[i].to_f64c());
-                        let g = fv.vjp(px, gb, gd, gw, s.perspective_correct);
-                        let run = &mut out.last_mut().expect("a run").1;
+                        let g = sc.fv[e].vjp(px, gb, gd, gw, s.perspective_correct);
+                        let o = &mut sc.out[e].1;
                         for m in 0..3 {
                             for q in 0..4 {
-                                run[m][q] += g[m][q];
+                                o[m][q] += g[m][q];
                             }
                         }
                     } else {
-                        fv.accumulate(&mut run_acc, px, gb, s.perspective_correct);
+                        sc.fv[e].accumulate(&mut sc.acc[e], px, gb, s.perspective_correct);
                     }
                 }
-                if let (Some((_, fv)), false) = (&cur, depth_grads) {
-                    out.last_mut().expect("a run").1 = fv.finish(&run_acc, s.perspective_correct);
+                if !depth_grads {
+                    for ((_, o), (fv, a)) in sc.out.iter_mut().zip(sc.fv.iter().zip(&sc.acc)) {
+                        *o = fv.finish(a, s.perspective_correct);
+                    }
                 }
-                out
+                std::mem::take(&mut sc.out)
             })
             .collect();
-        // Fixed-order reduction: every vertex sums its contributions in fragment order
+        // Fixed-order reduction: every vertex sums its contributions in chunk order
         // (parallel over vertex blocks, `scatter_face_corners`).
         scatter_face_corners(acc.as_flattened_mut(), 4, faces, || {
-            runs.iter().flatten().map(|(fi, g)| (*fi, g.as_flattened()))
+            sums.iter().flatten().map(|(fi, g)| (*fi, g.as_flattened()))
         });
         start = end;
     }
     Ok(acc.into_iter().map(|a| a.map(T::from_f64c)).collect())
+}
+
+/// Fragments per parallel chunk of [`rasterize_backward`].
+const BWD_CHUNK: usize = 4096;
+
+/// Per-thread scratch of [`rasterize_backward`]'s chunks: the faces met in the chunk (in order
+/// of first touch) with their contribution, setup and factor sums, and the map from face index
+/// to entry.
+struct BwdScratch {
+    face_ix: IndexMap,
+    out: Vec<(u32, [[f64; 4]; 3])>,
+    fv: Vec<FaceVjp>,
+    acc: Vec<RunVjp>,
+}
+
+impl BwdScratch {
+    fn new() -> Self {
+        BwdScratch {
+            face_ix: IndexMap::new(BWD_CHUNK),
+            out: Vec::new(),
+            fv: Vec::new(),
+            acc: Vec::new(),
+        }
+    }
+
+    fn clear(&mut self) {
+        self.face_ix.clear();
+        self.out.clear();
+        self.fv.clear();
+        self.acc.clear();
+    }
 }
 
 #[inline]
