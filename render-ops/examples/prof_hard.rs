@@ -9,7 +9,8 @@
 //!
 //! `SUBDIV` 4 (default) is the 5k-face sphere. `GRAD=1` adds the backward of
 //! `sum((image - 0.25)^2)` to positions and colours (`render_hard_f32/forward_backward`), and
-//! the checksum then sums the gradients. Prints ms per iteration and a checksum of the
+//! the checksum then sums the gradients. `METHOD=deodr` renders with `render_ops::approx::deodr`
+//! instead (DEODR's settings, as `benches/raster.rs`'s `deodr_f32`). Prints ms per iteration and a checksum of the
 //! images (equal checksums: equal images up to summation order). Subtract a run with
 //! `ITERS = 0` (scene setup) from the instruction counts; the checksum itself costs about
 //! 10 instructions per image value.
@@ -58,6 +59,11 @@ fn main() {
         ..RasterSettings::new(size, size)
     };
     let grad = std::env::var("GRAD").is_ok_and(|v| v == "1");
+    let deodr = std::env::var("METHOD").is_ok_and(|v| v == "deodr");
+    let mut approx = render_ops::approx::ApproxSettings::new(size, size);
+    approx.cull_backfaces = true;
+    approx.perspective_correct = false;
+    approx.background = vec![0.0; 3];
     let target = ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
@@ -70,8 +76,13 @@ fn main() {
             let tape = Tape::<f32>::new();
             let p = tape.var(pos.clone(), grad);
             let cv = tape.var(col.clone(), grad);
-            let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s).unwrap();
-            let img = blend_hard(interpolate(cv, &r).unwrap(), &r.fragments, &[0.0; 3]).unwrap();
+            let img = if deodr {
+                render_ops::approx::deodr(to_clip(p, &m), cv, faces.clone(), &approx).unwrap()
+            } else {
+                let r =
+                    render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s).unwrap();
+                blend_hard(interpolate(cv, &r).unwrap(), &r.fragments, &[0.0; 3]).unwrap()
+            };
             if grad {
                 let loss = img.sum_squared_diff(tape.constant(target.clone()));
                 let g = tape.backward(loss).unwrap();
