@@ -308,7 +308,8 @@ impl<T: Real> Op<T> for LogSumExpOp {
 
 /// `sum((a - b)^2)` over all elements of two tensors of one shape, fused: the forward reads both
 /// once and stores nothing image-sized, the backward writes `2 (a - b) g` (and its negative for
-/// `b`) in one pass. The same value as `(a - b).square().sum()` up to summation order, without
+/// `b`) in one pass. The same value as `(a - b).square().sum()` (same operations in the same
+/// order: fixed chunks, [`crate::tensor::sum_slice`]'s partial sums), without
 /// the difference, square and gradient-broadcast tensors of the composed form (the photometric
 /// loss of analysis-by-synthesis over a whole image).
 pub struct SumSquaredDiffOp;
@@ -386,7 +387,7 @@ mod tests {
     use crate::tape::Tape;
     use ndarray::{ArrayD, IxDyn};
 
-    /// The fused loss equals the composed `(a - b).square().sum()` (to summation order), gives
+    /// The fused loss equals the composed `(a - b).square().sum()` bit for bit, gives
     /// the composed gradients to both inputs, is bit-identical for any thread count, and
     /// rejects mismatched shapes with a typed error.
     #[test]
@@ -399,7 +400,8 @@ mod tests {
         let fused = va.sum_squared_diff(vb);
         let composed = (va - vb).square().sum();
         let (f, c) = (fused.item().unwrap(), composed.item().unwrap());
-        assert!((f - c).abs() <= 1e-12 * c.abs(), "{f} vs {c}");
+        // The same operations in the same order (fixed chunks, 16 partial sums): the same bits.
+        assert_eq!(f.to_bits(), c.to_bits(), "{f} vs {c}");
         let (gf, gc) = (
             tape.backward(fused).unwrap(),
             tape.backward(composed).unwrap(),
