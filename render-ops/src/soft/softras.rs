@@ -47,7 +47,8 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom, TileBins, TILE,
+    check_memory_projected, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom,
+    Projected, TileBins, TILE,
 };
 use crate::error::RenderError;
 
@@ -177,7 +178,7 @@ pub fn softras<'t, T: Real>(
         )
         .into());
     }
-    check_memory(
+    let pre = check_memory_projected(
         "softras",
         &clip,
         &faces,
@@ -190,6 +191,7 @@ pub fn softras<'t, T: Real>(
         faces,
         s: settings.clone(),
         prep: None,
+        pre,
     };
     Ok(clip.tape().apply(op, &[clip, attrs]))
 }
@@ -210,6 +212,8 @@ struct Prep {
     fast: bool,
     /// Column centres padded for 8-lane chunks (fast path only).
     pxp: Vec<f64>,
+    /// Per face, its `f32` geometry (fast path only).
+    g32: Vec<fast::Geom32>,
 }
 
 /// Leading per-pixel values of [`Prep::pix`] before the attributes.
@@ -269,6 +273,10 @@ struct SoftRasOp {
     faces: Arc<Vec<[u32; 3]>>,
     s: SoftSettings,
     prep: Option<Arc<Prep>>,
+    /// The projection and face boxes of the clip positions the op was built for, from the
+    /// memory check in [`softras`] (the tape runs the forward on those values right after):
+    /// taken by the first forward instead of projecting and boxing the faces again.
+    pre: Option<Projected>,
 }
 
 /// `(sigmoid(x), sigmoid(-x))` from one exponential `e = exp(-|x|)`, both to full relative
@@ -283,24 +291,28 @@ fn sigmoid_from(x: f64, e: f64) -> (f64, f64) {
     }
 }
 
+/// Projection (or `pre`'s, computed from the same `clip` by the memory check) and binning.
 fn prepare<T: Real>(
     clip: &Tensor<T>,
     attrs: &Tensor<T>,
     faces: &[[u32; 3]],
     s: &SoftSettings,
+    pre: Option<Projected>,
 ) -> Prep {
     let channels = attrs.shape()[1];
-    let (ndc, depth) = project(clip);
     let attrs: Vec<f64> = attrs.iter().map(|a| a.to_f64c()).collect();
-    let bins = TileBins::new(
-        &ndc,
-        &depth,
-        faces,
-        s.width,
-        s.height,
-        s.cutoff_sq().sqrt(),
-        false,
-    );
+    let dmax = s.cutoff_sq().sqrt();
+    let (ndc, depth, bins) = match pre {
+        Some(Projected { ndc, depth, rects }) if rects.len() == faces.len() => {
+            let bins = TileBins::with_rects(&ndc, &depth, faces, s.width, s.height, dmax, rects);
+            (ndc, depth, bins)
+        }
+        _ => {
+            let (ndc, depth) = project(clip);
+            let bins = TileBins::new(&ndc, &depth, faces, s.width, s.height, dmax, false);
+            (ndc, depth, bins)
+        }
+    };
     Prep {
         ndc,
         depth,
@@ -310,6 +322,7 @@ fn prepare<T: Real>(
         pix: Vec::new(),
         fast: false,
         pxp: Vec::new(),
+        g32: Vec::new(),
     }
 }
 
@@ -533,7 +546,8 @@ impl<T: Real> Op<T> for SoftRasOp {
     }
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s);
+        let pre = self.pre.take();
+        let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s, pre);
         let (w, h, c) = (self.s.width, self.s.height, prep.channels);
         prep.fast = T::as_f32(&[]).is_some()
             && c <= fast::FAST_MAX_C
@@ -541,6 +555,7 @@ impl<T: Real> Op<T> for SoftRasOp {
             && fast::f32_range_ok(&self.s);
         if prep.fast {
             prep.pxp = fast::padded_px(&prep.bins.px);
+            prep.g32 = fast::geoms32(&prep.bins);
         }
         let this = &*self;
         let bg: Vec<f64> = (0..c)

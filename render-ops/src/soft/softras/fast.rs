@@ -41,9 +41,10 @@ const TP: usize = TILE * TILE;
 /// into the next row or, on the last row, into this padding.
 const TPP: usize = TP + LANES;
 
-/// One face's screen geometry in `f32`, relative to its first vertex `o`.
+/// One face's screen geometry in `f32`, relative to its first vertex `o` (set up once per
+/// forward for every face, [`geoms32`]).
 #[derive(Clone, Copy)]
-struct Geom32 {
+pub(super) struct Geom32 {
     /// First vertex (origin of the relative coordinates), NDC, `f64`.
     o: [f64; 2],
     /// `w_k(q) = bw[k][0] + bw[k][1] q_x + bw[k][2] q_y`, `q = p - o`.
@@ -76,6 +77,16 @@ impl Geom32 {
             inv_d: g.inv_d.map(|x| x as f32),
         }
     }
+}
+
+/// [`Geom32`] of every face of `bins` (in parallel; skipped faces get that of the default
+/// geometry, never read).
+pub(super) fn geoms32(bins: &crate::soft::common::TileBins) -> Vec<Geom32> {
+    bins.geoms
+        .par_iter()
+        .with_min_len(1024)
+        .map(Geom32::new)
+        .collect()
 }
 
 /// Constants of one render.
@@ -399,7 +410,7 @@ impl SoftRasOp {
             else {
                 continue;
             };
-            let g = Geom32::new(&bins.geoms[fi as usize]);
+            let g = prep.g32[fi as usize];
             let span = bins.span(fi as usize);
             for row in r0..=r1 {
                 let py = bins.py[row];
@@ -612,7 +623,7 @@ impl SoftRasOp {
         let stride = 4 + c;
         let f = self.faces[fi];
         let geom = &bins.geoms[fi];
-        let g = Geom32::new(geom);
+        let g = prep.g32[fi];
         let k = self.consts();
         let inv_area = F8::splat((1.0 / geom.area) as f32);
         let inv_gamma = F8::splat((1.0 / s.gamma) as f32);
