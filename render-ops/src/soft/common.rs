@@ -13,8 +13,8 @@ use crate::raster::{RasterError, MAX_FRAGMENT_SLOTS};
 /// cut-off, touches. Each entry is a 4-byte face id (64 MB at the limit); the backwards keep
 /// one accumulator per face (`3 x (4 + C)` `f64` for SoftRas, `3 x 3` for DIB-R), not per
 /// entry. The forwards' per-tile scratch holds the kept (face, pixel) pairs of one tile at a
-/// time (48 bytes each for SoftRas, or 192 bytes per 8-pixel chunk on its `f32` path; 8 for
-/// DIB-R) per thread. A fine mesh of small faces needs a few entries per face; a huge cut-off (e.g. SoftRas
+/// time (48 bytes each for SoftRas; 8 for DIB-R) per thread, SoftRas's `f32` path those of one
+/// band of 8 image rows (192 bytes per 8-pixel chunk). A fine mesh of small faces needs a few entries per face; a huge cut-off (e.g. SoftRas
 /// `threshold` 0, which makes every face reach every pixel) multiplies faces by tiles and is
 /// refused with [`RasterError::TooLarge`] before anything is allocated.
 pub const MAX_SOFT_BIN_ENTRIES: usize = 1 << 24;

@@ -31,7 +31,9 @@
 //! some `D = 1`); where `P >= 1/2` the silhouette is `-expm1(sum log1p(-D))` for full relative
 //! precision of faint coverage. Its gradient is `d(1 - P)/dx_f = P D_f`, with no division by `1 - D_f`.
 //!
-//! `f32` tapes ([`fast`]): the same two-pass forward and per-face backward, with each row
+//! `f32` tapes ([`fast`]): the same two-pass forward (over bands of 8 whole image rows
+//! instead of tiles, so that row spans are not cut at tile columns, each band writing its
+//! rows of the image and of the aggregate directly) and per-face backward, with each row
 //! span evaluated 8 consecutive pixels at a time in single precision (eight-lane values the
 //! compiler turns into AVX2 instructions in a build selected by runtime CPU detection, with a
 //! portable build of the same source otherwise; both give the same bits). All three edges'
@@ -558,6 +560,34 @@ impl<T: Real> Op<T> for SoftRasOp {
             prep.g32 = fast::geoms32(&prep.bins);
         }
         let this = &*self;
+        let pstride = PIX_STATS + c;
+        if prep.fast {
+            // Bands of image rows in parallel, each straight into its rows of the image and
+            // of `pix` (every pixel written).
+            let bands = fast::band_faces(&prep.bins, h);
+            let mut img = vec![T::from_f64c(0.0); h * w * (c + 1)];
+            let mut pix = vec![0.0; h * w * pstride];
+            {
+                let prep = &prep;
+                let img32 = T::as_f32_mut(&mut img).expect("the fast path runs on f32 tapes");
+                img32
+                    .par_chunks_mut(fast::BAND * w * (c + 1))
+                    .zip(pix.par_chunks_mut(fast::BAND * w * pstride))
+                    .zip(bands.par_iter())
+                    .enumerate()
+                    .for_each_init(
+                        || fast::Scratch32::new(c, w),
+                        |sc, (band, ((irow, prow), tf))| {
+                            this.band_forward32(prep, &prep.pxp, band, tf, sc, irow, prow)
+                        },
+                    );
+            }
+            prep.pix = pix;
+            self.prep = Some(Arc::new(prep));
+            return Ok(vec![
+                ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c+1")
+            ]);
+        }
         let bg: Vec<f64> = (0..c)
             .map(|ch| this.s.background.get(ch).copied().unwrap_or(0.0))
             .chain([0.0])
@@ -568,41 +598,23 @@ impl<T: Real> Op<T> for SoftRasOp {
         let tiles: Vec<Vec<f64>> = {
             let prep = &prep;
             let bins = &prep.bins;
-            if prep.fast {
-                (0..bins.tiles.len())
-                    .into_par_iter()
-                    .map_init(
-                        || fast::Scratch32::new(c),
-                        |sc, t| {
-                            let mut out = Vec::new();
-                            if !bins.tiles[t].is_empty() {
-                                out.reserve(TILE * TILE * per);
-                                this.tile_forward32(prep, &prep.pxp, t, sc, &mut out);
-                            }
-                            out
-                        },
-                    )
-                    .collect()
-            } else {
-                (0..bins.tiles.len())
-                    .into_par_iter()
-                    .map_init(
-                        || TileScratch::new(c),
-                        |sc, t| {
-                            let mut out = Vec::new();
-                            if !bins.tiles[t].is_empty() {
-                                out.reserve(TILE * TILE * per);
-                                this.tile_forward(prep, t, sc, &mut out);
-                            }
-                            out
-                        },
-                    )
-                    .collect()
-            }
+            (0..bins.tiles.len())
+                .into_par_iter()
+                .map_init(
+                    || TileScratch::new(c),
+                    |sc, t| {
+                        let mut out = Vec::new();
+                        if !bins.tiles[t].is_empty() {
+                            out.reserve(TILE * TILE * per);
+                            this.tile_forward(prep, t, sc, &mut out);
+                        }
+                        out
+                    },
+                )
+                .collect()
         };
         // Rows in parallel, each from the tiles of its tile row into the image and `pix`.
         let bins = &prep.bins;
-        let pstride = PIX_STATS + c;
         let mut img = vec![T::from_f64c(0.0); h * w * (c + 1)];
         let mut pix = vec![0.0; h * w * pstride];
         img.par_chunks_mut(w * (c + 1))

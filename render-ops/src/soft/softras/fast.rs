@@ -28,18 +28,17 @@
 use rayon::prelude::*;
 
 use super::{Prep, SoftRasOp, PIX_STATS};
-use crate::soft::common::{exp, FaceGeom, TILE};
+use crate::soft::common::{exp, FaceGeom};
 use crate::soft::simd::{arr3, exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
 
 /// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
 pub(super) const FAST_MAX_C: usize = 4;
 
-/// Tile pixels.
-const TP: usize = TILE * TILE;
-/// Per-pixel scratch arrays of a tile hold [`LANES`] more values: a chunk starts at the first
-/// column of a row span, and its lanes past the span (masked, adding neutral values) may run
-/// into the next row or, on the last row, into this padding.
-const TPP: usize = TP + LANES;
+/// Image rows per band of the forward: the forward runs over bands of whole image rows in
+/// parallel (not over 16 x 16 tiles as the `f64` evaluation), so that no row span is cut at
+/// tile columns into more 8-pixel chunks, and each band writes its own rows of the image and
+/// of the per-pixel aggregate directly.
+pub(super) const BAND: usize = 8;
 
 /// One face's screen geometry in `f32`, relative to its first vertex `o` (set up once per
 /// forward for every face, [`geoms32`]).
@@ -269,32 +268,49 @@ struct Chunk {
     wn: [F8; 3],
 }
 
-/// Per-thread scratch of the `f32` forward (tile-local row-major pixels).
+/// Per-thread scratch of the `f32` forward (band-local row-major pixels, `BAND x width`).
+/// The per-pixel arrays hold [`LANES`] more values: a chunk starts at the first column of a
+/// row span, and its lanes past the span (masked, adding neutral values) may run into the next
+/// row or, on the last row, into this padding.
 pub(super) struct Scratch32 {
     chunks: Vec<Chunk>,
     runs: Vec<usize>,
-    count: [f32; TPP],
-    umin: [f32; TPP],
-    prod: [f32; TPP],
-    zsum: [f32; TPP],
-    lsum: [f64; TPP],
-    /// Attribute sums, channel-planar (`ch * TPP + lp`).
+    count: Vec<f32>,
+    umin: Vec<f32>,
+    prod: Vec<f32>,
+    zsum: Vec<f32>,
+    lsum: Vec<f64>,
+    /// Attribute sums, channel-planar (`ch * (BAND * width + LANES) + lp`).
     col: Vec<f32>,
 }
 
 impl Scratch32 {
-    pub(super) fn new(c: usize) -> Self {
+    pub(super) fn new(c: usize, width: usize) -> Self {
+        let n = BAND * width + LANES;
         Self {
             chunks: Vec::new(),
             runs: Vec::new(),
-            count: [0.0; TPP],
-            umin: [0.0; TPP],
-            prod: [0.0; TPP],
-            zsum: [0.0; TPP],
-            lsum: [0.0; TPP],
-            col: vec![0.0; c * TPP],
+            count: vec![0.0; n],
+            umin: vec![0.0; n],
+            prod: vec![0.0; n],
+            zsum: vec![0.0; n],
+            lsum: vec![0.0; n],
+            col: vec![0.0; c * n],
         }
     }
+}
+
+/// The faces whose boxes reach each band of [`BAND`] image rows, in face order.
+pub(super) fn band_faces(bins: &crate::soft::common::TileBins, height: usize) -> Vec<Vec<u32>> {
+    let mut bands = vec![Vec::new(); height.div_ceil(BAND)];
+    for (fi, r) in bins.rects.iter().enumerate() {
+        if r[0] <= r[1] {
+            for band in bands[r[2] as usize / BAND..=r[3] as usize / BAND].iter_mut() {
+                band.push(fi as u32);
+            }
+        }
+    }
+    bands
 }
 
 /// `m = max(eps, max_f zn_f)` of a pixel from its `u_min` (start value `u0 = 1 - eps` in
@@ -372,44 +388,78 @@ impl SoftRasOp {
     }
 
     channel_kernel! {
-        /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time (same outputs, same layout).
-        fn tile_forward32 => tile_forward32_impl(
+        /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time, over band `band` of
+        /// [`BAND`] image rows with its faces `tf` ([`band_faces`]), into the band's rows of
+        /// the image (`img`, `C + 1` values a pixel) and of [`Prep::pix`] (`pix`).
+        fn band_forward32 => band_forward32_impl(
             pxp: &[f64],
-            t: usize,
+            band: usize,
+            tf: &[u32],
             sc: &mut Scratch32,
-            out: &mut Vec<f64>,
+            img: &mut [f32],
+            pix: &mut [f64],
         )
     }
 
     #[inline(always)]
-    fn tile_forward32_impl<const C: usize>(
+    #[allow(clippy::too_many_arguments)]
+    fn band_forward32_impl<const C: usize>(
         &self,
         prep: &Prep,
         pxp: &[f64],
-        t: usize,
+        band: usize,
+        tf: &[u32],
         sc: &mut Scratch32,
-        out: &mut Vec<f64>,
+        img: &mut [f32],
+        pix: &mut [f64],
     ) {
         let s = &self.s;
         let c = C;
         debug_assert_eq!(prep.channels, C);
         let bins = &prep.bins;
-        let tf = &bins.tiles[t];
-        let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
+        let w = s.width;
+        let r_base = band * BAND;
+        let r_last = (r_base + BAND).min(s.height) - 1;
+        // Band pixels, and the per-pixel scratch stride.
+        let np = (r_last + 1 - r_base) * w;
+        let bp = BAND * w + LANES;
         let k = self.consts();
         let inv_gamma = F8::splat((1.0 / s.gamma) as f32);
-        sc.chunks.clear();
-        sc.runs.clear();
-        sc.count.fill(0.0);
-        sc.umin.fill((1.0 - s.eps) as f32);
-        sc.prod.fill(1.0);
+        // The scratch as local slices (their lengths and addresses stay in registers).
+        let Scratch32 {
+            chunks,
+            runs,
+            count,
+            umin,
+            prod,
+            zsum,
+            lsum,
+            col,
+        } = sc;
+        let (count, umin, prod) = (
+            &mut count[..np + LANES],
+            &mut umin[..np + LANES],
+            &mut prod[..np + LANES],
+        );
+        let (zsum, lsum, col) = (
+            &mut zsum[..np + LANES],
+            &mut lsum[..np + LANES],
+            &mut col[..c * bp],
+        );
+        chunks.clear();
+        runs.clear();
+        count.fill(0.0);
+        umin.fill((1.0 - s.eps) as f32);
+        prod.fill(1.0);
         // Pass 1: pairs, u_min and P.
         for &fi in tf.iter() {
-            sc.runs.push(sc.chunks.len());
-            let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
-            else {
+            runs.push(chunks.len());
+            let rc = bins.rects[fi as usize];
+            let (c0, c1) = (rc[0] as usize, rc[1] as usize);
+            let (r0, r1) = ((rc[2] as usize).max(r_base), (rc[3] as usize).min(r_last));
+            if r0 > r1 {
                 continue;
-            };
+            }
             let g = prep.g32[fi as usize];
             let span = bins.span(fi as usize);
             for row in r0..=r1 {
@@ -423,12 +473,12 @@ impl SoftRasOp {
                     let valid = lanes_to(cs, b);
                     if let Some(p) = pair8(&g, offsets(pxp, cs, g.o[0]), qy, valid, &k) {
                         let (dd, omd) = sigmoid8(&p);
-                        let lp = (row - r_base) * TILE + cs - c_base;
+                        let lp = (row - r_base) * w + cs;
                         let ones = select(p.keep, F8::splat(1.0), F8::splat(0.0));
-                        (F8::load(&sc.count[lp..]) + ones).store(&mut sc.count[lp..]);
-                        F8::load(&sc.umin[lp..]).min(p.u).store(&mut sc.umin[lp..]);
-                        (F8::load(&sc.prod[lp..]) * omd).store(&mut sc.prod[lp..]);
-                        sc.chunks.push(Chunk {
+                        (F8::load(&count[lp..]) + ones).store(&mut count[lp..]);
+                        F8::load(&umin[lp..]).min(p.u).store(&mut umin[lp..]);
+                        (F8::load(&prod[lp..]) * omd).store(&mut prod[lp..]);
+                        chunks.push(Chunk {
                             lp,
                             dd,
                             u: p.u,
@@ -439,27 +489,27 @@ impl SoftRasOp {
                 }
             }
         }
-        sc.runs.push(sc.chunks.len());
+        runs.push(chunks.len());
         // Background terms, e_b = exp((eps - m) / gamma), m = 1 - u_min (exactly eps where
         // no face has zn > eps, u_min still at its start value).
         let u0 = (1.0 - s.eps) as f32;
-        for lp in 0..TP {
+        for lp in 0..np {
             // exp(0) = 1 where m = eps (no face in front of the background).
-            let eb = if sc.umin[lp] >= u0 {
+            let eb = if umin[lp] >= u0 {
                 1.0
             } else {
-                exp((s.eps - pixel_m(sc.umin[lp], u0, s.eps)) / s.gamma)
+                exp((s.eps - pixel_m(umin[lp], u0, s.eps)) / s.gamma)
             };
-            sc.zsum[lp] = eb as f32;
-            sc.lsum[lp] = 0.0;
+            zsum[lp] = eb as f32;
+            lsum[lp] = 0.0;
             for ch in 0..c {
-                sc.col[ch * TPP + lp] = (eb * s.background.get(ch).copied().unwrap_or(0.0)) as f32;
+                col[ch * bp + lp] = (eb * s.background.get(ch).copied().unwrap_or(0.0)) as f32;
             }
         }
         // Pass 2: the blend (eq. (6)), e_f = exp((u_min - u_f) / gamma).
         let mut fa = [[F8::default(); FAST_MAX_C]; 3];
         for (li, &fi) in tf.iter().enumerate() {
-            let chunks = &sc.chunks[sc.runs[li]..sc.runs[li + 1]];
+            let chunks = &chunks[runs[li]..runs[li + 1]];
             if chunks.is_empty() {
                 continue;
             }
@@ -471,7 +521,7 @@ impl SoftRasOp {
             }
             for ck in chunks {
                 let lp = ck.lp;
-                let tt = (F8::load(&sc.umin[lp..]) - ck.u) * inv_gamma;
+                let tt = (F8::load(&umin[lp..]) - ck.u) * inv_gamma;
                 let under = tt.lt(F8::splat(EXP_MIN));
                 // Occluded faces (every e_f 0) add exact zeros: skipped, exponential included.
                 let we = if (!under).any() {
@@ -480,51 +530,61 @@ impl SoftRasOp {
                     F8::splat(0.0)
                 };
                 if we.gt(F8::splat(0.0)).any() {
-                    (F8::load(&sc.zsum[lp..]) + we).store(&mut sc.zsum[lp..]);
+                    (F8::load(&zsum[lp..]) + we).store(&mut zsum[lp..]);
                     for ch in 0..c {
                         let a = ck.wn[0] * fa[0][ch] + ck.wn[1] * fa[1][ch] + ck.wn[2] * fa[2][ch];
-                        let o = ch * TPP + lp;
-                        (F8::load(&sc.col[o..]) + we * a).store(&mut sc.col[o..]);
+                        let o = ch * bp + lp;
+                        (F8::load(&col[o..]) + we * a).store(&mut col[o..]);
                     }
                 }
                 // Faint coverage (P >= 1/2): sum log1p(-D) in f64 for the silhouette.
-                let faint = F8::load(&sc.prod[lp..]).ge(F8::splat(0.5)) & ck.dd.gt(F8::splat(0.0));
+                let faint = F8::load(&prod[lp..]).ge(F8::splat(0.5)) & ck.dd.gt(F8::splat(0.0));
                 if faint.any() {
                     for l in 0..LANES {
                         if faint.lane(l) {
-                            sc.lsum[lp + l] += (-(ck.dd.0[l] as f64)).ln_1p();
+                            lsum[lp + l] += (-(ck.dd.0[l] as f64)).ln_1p();
                         }
                     }
                 }
             }
         }
-        out.clear();
-        for lp in 0..TP {
-            if sc.count[lp] == 0.0 {
-                out.extend((0..c).map(|ch| s.background.get(ch).copied().unwrap_or(0.0)));
-                out.push(0.0);
-            } else {
-                let z = sc.zsum[lp] as f64;
-                out.extend((0..c).map(|ch| sc.col[ch * TPP + lp] as f64 / z));
-                let p = sc.prod[lp] as f64;
-                out.push(if p < 0.5 {
-                    1.0 - p
-                } else {
-                    -sc.lsum[lp].exp_m1()
-                });
+        // The band's rows of the image and of the per-pixel aggregate. Pixels no pair reaches
+        // get the background and `Z = 0`, which makes the backward skip them ([`Planes`]).
+        let pstride = PIX_STATS + c;
+        let bg: [f64; FAST_MAX_C] =
+            std::array::from_fn(|ch| s.background.get(ch).copied().unwrap_or(0.0));
+        let pixels = img[..np * (c + 1)]
+            .chunks_exact_mut(c + 1)
+            .zip(pix[..np * pstride].chunks_exact_mut(pstride))
+            .enumerate();
+        for (lp, (io, po)) in pixels {
+            if count[lp] == 0.0 {
+                for ch in 0..c {
+                    io[ch] = bg[ch] as f32;
+                    po[PIX_STATS + ch] = bg[ch];
+                }
+                io[c] = 0.0;
+                po[..PIX_STATS].copy_from_slice(&[s.eps, 0.0, 1.0]);
+                continue;
             }
-            out.extend([
-                pixel_m(sc.umin[lp], u0, s.eps),
-                sc.zsum[lp] as f64,
-                sc.prod[lp] as f64,
-            ]);
+            let z = zsum[lp] as f64;
+            for ch in 0..c {
+                let v = col[ch * bp + lp] as f64 / z;
+                io[ch] = v as f32;
+                po[PIX_STATS + ch] = v;
+            }
+            let p = prod[lp] as f64;
+            io[c] = (if p < 0.5 { 1.0 - p } else { -lsum[lp].exp_m1() }) as f32;
+            po[0] = pixel_m(umin[lp], u0, s.eps);
+            po[1] = z;
+            po[2] = p;
         }
     }
 }
 
 /// The backward's per-pixel values for the `f32` path, planar (`plane * n + pixel`, `n` the
 /// pixel count plus [`LANES`] of padding): the `C` attribute gradients `g`, then `g_alpha P`,
-/// `g . I`, `1 / Z` and `u_min = 1 - m` (`-inf` where `g` is 0 or no face reaches the pixel:
+/// `g . I`, `1 / Z` and `u_min = 1 - m` (`-inf` where `g` is 0 or no pair was kept at the pixel:
 /// it is skipped, and its other values are 0).
 pub(super) struct Planes {
     pub v: Vec<f32>,
@@ -571,7 +631,7 @@ impl Planes {
             let gs = go[p0 * (C + 1)..(p0 + len) * (C + 1)].chunks_exact(C + 1);
             let sts = prep.pix[p0 * pstride..(p0 + len) * pstride].chunks_exact(pstride);
             for (j, (g, st)) in gs.zip(sts).enumerate() {
-                // Pixels no face reaches (empty tiles leave Z = 0) have no pairs: skipped
+                // Pixels where no pair was kept (the forward leaves Z = 0) are skipped
                 // too.
                 if g.iter().all(|&x| x == 0.0) || !(st[1] > 0.0) {
                     continue;
