@@ -566,13 +566,17 @@ impl<T: Real> Op<T> for SoftRasOp {
             // of `pix` (every pixel written).
             let bands = fast::band_faces(&prep.bins, h);
             let mut img = vec![T::from_f64c(0.0); h * w * (c + 1)];
-            let mut pix = vec![0.0; h * w * pstride];
+            // Every value of `pix` is written by its band (no image-sized zeroing first).
+            let mut pix: Vec<f64> = Vec::with_capacity(h * w * pstride);
             {
                 let prep = &prep;
                 let img32 = T::as_f32_mut(&mut img).expect("the fast path runs on f32 tapes");
                 img32
                     .par_chunks_mut(fast::BAND * w * (c + 1))
-                    .zip(pix.par_chunks_mut(fast::BAND * w * pstride))
+                    .zip(
+                        pix.spare_capacity_mut()[..h * w * pstride]
+                            .par_chunks_mut(fast::BAND * w * pstride),
+                    )
                     .zip(bands.par_iter())
                     .enumerate()
                     .for_each_init(
@@ -582,6 +586,10 @@ impl<T: Real> Op<T> for SoftRasOp {
                         },
                     );
             }
+            // SAFETY: the capacity is h w pstride, and the bands (h / BAND rounded up, each
+            // over its rows of every column) wrote all `pstride` values of each of their
+            // pixels (`band_forward32` writes them for covered and uncovered pixels alike).
+            unsafe { pix.set_len(h * w * pstride) };
             prep.pix = pix;
             self.prep = Some(Arc::new(prep));
             return Ok(vec![

@@ -25,6 +25,8 @@
 //! by less than that relative amount times `1 / D` of the largest term, far below `f32`
 //! precision for any `D >= threshold >= 1e-30`.
 
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
 
 use super::{Prep, SoftRasOp, PIX_STATS};
@@ -288,7 +290,8 @@ impl Scratch32 {
     pub(super) fn new(c: usize, width: usize) -> Self {
         let n = BAND * width + LANES;
         Self {
-            chunks: Vec::new(),
+            // Room for a few chunks per band pixel (sigma 1e-4 at 256 x 256 keeps about one).
+            chunks: Vec::with_capacity(n),
             runs: Vec::new(),
             count: vec![0.0; n],
             umin: vec![0.0; n],
@@ -397,7 +400,7 @@ impl SoftRasOp {
             tf: &[u32],
             sc: &mut Scratch32,
             img: &mut [f32],
-            pix: &mut [f64],
+            pix: &mut [MaybeUninit<f64>],
         )
     }
 
@@ -411,7 +414,7 @@ impl SoftRasOp {
         tf: &[u32],
         sc: &mut Scratch32,
         img: &mut [f32],
-        pix: &mut [f64],
+        pix: &mut [MaybeUninit<f64>],
     ) {
         let s = &self.s;
         let c = C;
@@ -561,23 +564,25 @@ impl SoftRasOp {
             if count[lp] == 0.0 {
                 for ch in 0..c {
                     io[ch] = bg[ch] as f32;
-                    po[PIX_STATS + ch] = bg[ch];
+                    po[PIX_STATS + ch].write(bg[ch]);
                 }
                 io[c] = 0.0;
-                po[..PIX_STATS].copy_from_slice(&[s.eps, 0.0, 1.0]);
+                po[0].write(s.eps);
+                po[1].write(0.0);
+                po[2].write(1.0);
                 continue;
             }
             let z = zsum[lp] as f64;
             for ch in 0..c {
                 let v = col[ch * bp + lp] as f64 / z;
                 io[ch] = v as f32;
-                po[PIX_STATS + ch] = v;
+                po[PIX_STATS + ch].write(v);
             }
             let p = prod[lp] as f64;
             io[c] = (if p < 0.5 { 1.0 - p } else { -lsum[lp].exp_m1() }) as f32;
-            po[0] = pixel_m(umin[lp], u0, s.eps);
-            po[1] = z;
-            po[2] = p;
+            po[0].write(pixel_m(umin[lp], u0, s.eps));
+            po[1].write(z);
+            po[2].write(p);
         }
     }
 }
@@ -610,16 +615,21 @@ impl Planes {
         let pstride = PIX_STATS + C;
         let pixels = go.len() / (C + 1);
         let n = pixels + LANES;
-        let mut v = vec![0.0f32; (C + 4) * n];
+        // Every value is written exactly once below (no image-sized zeroing first).
+        let mut v: Vec<f32> = Vec::with_capacity((C + 4) * n);
         // Blocks of pixels in parallel, each writing its part of every plane (the values
-        // depend on their pixel only).
+        // depend on their pixel only); the padding here.
         const BLOCK: usize = 4096;
-        let mut blocks: Vec<Vec<&mut [f32]>> = (0..pixels.div_ceil(BLOCK))
+        let mut blocks: Vec<Vec<&mut [MaybeUninit<f32>]>> = (0..pixels.div_ceil(BLOCK))
             .map(|_| Vec::with_capacity(C + 4))
             .collect();
-        for (i, plane) in v.chunks_mut(n).enumerate() {
-            if i == C + 3 {
-                plane.fill(f32::NEG_INFINITY);
+        for (i, plane) in v.spare_capacity_mut()[..(C + 4) * n]
+            .chunks_mut(n)
+            .enumerate()
+        {
+            let pad = if i == C + 3 { f32::NEG_INFINITY } else { 0.0 };
+            for x in &mut plane[pixels..] {
+                x.write(pad);
             }
             for (b, part) in plane[..pixels].chunks_mut(BLOCK).enumerate() {
                 blocks[b].push(part);
@@ -634,19 +644,27 @@ impl Planes {
                 // Pixels where no pair was kept (the forward leaves Z = 0) are skipped
                 // too.
                 if g.iter().all(|&x| x == 0.0) || !(st[1] > 0.0) {
+                    for plane in out[..C + 3].iter_mut() {
+                        plane[j].write(0.0);
+                    }
+                    out[C + 3][j].write(f32::NEG_INFINITY);
                     continue;
                 }
                 let mut gi = 0.0;
                 for ch in 0..C {
-                    out[ch][j] = g[ch];
+                    out[ch][j].write(g[ch]);
                     gi += g[ch] as f64 * st[PIX_STATS + ch];
                 }
-                out[C][j] = (g[C] as f64 * st[2]) as f32;
-                out[C + 1][j] = gi as f32;
-                out[C + 2][j] = (1.0 / st[1]) as f32;
-                out[C + 3][j] = (1.0 - st[0]) as f32;
+                out[C][j].write((g[C] as f64 * st[2]) as f32);
+                out[C + 1][j].write(gi as f32);
+                out[C + 2][j].write((1.0 / st[1]) as f32);
+                out[C + 3][j].write((1.0 - st[0]) as f32);
             }
         });
+        // SAFETY: the capacity is at least (C + 4) n, and each of those values was written
+        // above: every plane's padding by the loop over planes, and its `pixels` values by
+        // the block of their pixel (every pixel, skipped or not, writes all C + 4 planes).
+        unsafe { v.set_len((C + 4) * n) };
         Self { v, n }
     }
 }
