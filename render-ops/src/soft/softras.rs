@@ -582,7 +582,7 @@ impl<T: Real> Op<T> for SoftRasOp {
                     .for_each_init(
                         || fast::Scratch32::new(c, w),
                         |sc, (band, ((irow, prow), tf))| {
-                            this.band_forward32(prep, &prep.pxp, band, tf, sc, irow, prow)
+                            this.band_forward32(prep, band, tf, sc, irow, prow)
                         },
                     );
             }

@@ -395,7 +395,6 @@ impl SoftRasOp {
         /// [`BAND`] image rows with its faces `tf` ([`band_faces`]), into the band's rows of
         /// the image (`img`, `C + 1` values a pixel) and of [`Prep::pix`] (`pix`).
         fn band_forward32 => band_forward32_impl(
-            pxp: &[f64],
             band: usize,
             tf: &[u32],
             sc: &mut Scratch32,
@@ -405,11 +404,9 @@ impl SoftRasOp {
     }
 
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
     fn band_forward32_impl<const C: usize>(
         &self,
         prep: &Prep,
-        pxp: &[f64],
         band: usize,
         tf: &[u32],
         sc: &mut Scratch32,
@@ -420,6 +417,7 @@ impl SoftRasOp {
         let c = C;
         debug_assert_eq!(prep.channels, C);
         let bins = &prep.bins;
+        let pxp = &prep.pxp[..];
         let w = s.width;
         let r_base = band * BAND;
         let r_last = (r_base + BAND).min(s.height) - 1;
@@ -954,6 +952,30 @@ mod tests {
             assert!(ep < 2e-4 && mp < 5e-4, "positions {ep} {mp}");
             assert!(ec < 1e-5 && mc < 2e-5, "colours {ec} {mc}");
         }
+    }
+
+    /// An image whose height is not a multiple of the forward's [`super::BAND`] rows (a
+    /// partial last band) and whose width is not a multiple of 8 (chunks running into the
+    /// padding): the same bits for 1 and 3 threads and from the portable build, and the
+    /// `f64` evaluation's image and gradients within the tolerances above.
+    #[test]
+    fn f32_path_partial_band() {
+        let size = 75;
+        assert_ne!(size % super::BAND, 0);
+        let a = render::<f32>(3, size, 1e-4, 1);
+        assert!(a == render::<f32>(3, size, 1e-4, 3), "3 threads differ");
+        set_force_portable(true);
+        let b = render::<f32>(3, size, 1e-4, 2);
+        set_force_portable(false);
+        assert!(a == b, "portable build differs");
+        let (i64_, gp64, gc64) = render::<f64>(3, size, 1e-4, 2);
+        let di =
+            a.0.iter()
+                .zip(&i64_)
+                .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
+        assert!(di < 1e-4, "image {di}");
+        let (ep, ec) = (rel_l2(&a.1, &gp64), rel_l2(&a.2, &gc64));
+        assert!(ep < 2e-4 && ec < 1e-5, "positions {ep}, colours {ec}");
     }
 
     /// Settings outside `f32`'s range (here `1 / sigma`) take the `f64` evaluation and stay
