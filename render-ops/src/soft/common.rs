@@ -90,11 +90,13 @@ impl TileBins {
                 face_rect(ndc, depth, f, width, height, dmax, cull_backfaces).unwrap_or(SKIPPED)
             })
             .collect();
-        Self::with_rects(ndc, depth, faces, width, height, dmax, rects)
+        Self::with_rects(ndc, depth, faces, width, height, dmax, rects, true)
     }
 
     /// [`TileBins::new`] from the faces' pixel boxes as `face_rect` gives them (`SKIPPED`
-    /// for skipped faces), e.g. those [`check_memory`] computed for its count.
+    /// for skipped faces), e.g. those [`check_memory`] computed for its count; the per-tile
+    /// face lists stay empty unless `bin_tiles` (for callers that walk faces, not tiles).
+    #[allow(clippy::too_many_arguments)]
     pub fn with_rects(
         ndc: &[[f64; 2]],
         depth: &[f64],
@@ -103,6 +105,7 @@ impl TileBins {
         height: usize,
         dmax: f64,
         rects: Vec<[i64; 4]>,
+        bin_tiles: bool,
     ) -> Self {
         let tiles_x = width.div_ceil(TILE);
         let tiles_y = height.div_ceil(TILE);
@@ -124,7 +127,7 @@ impl TileBins {
             })
             .unzip();
         for (fi, rect) in rects.iter().enumerate() {
-            if rect[0] > rect[1] {
+            if rect[0] > rect[1] || !bin_tiles {
                 continue;
             }
             for ty in rect[2] as usize / TILE..=rect[3] as usize / TILE {

@@ -293,20 +293,23 @@ fn sigmoid_from(x: f64, e: f64) -> (f64, f64) {
     }
 }
 
-/// Projection (or `pre`'s, computed from the same `clip` by the memory check) and binning.
+/// Projection (or `pre`'s, computed from the same `clip` by the memory check) and binning
+/// (faces into tiles only when not on the `fast` path, whose forward walks bands of rows).
 fn prepare<T: Real>(
     clip: &Tensor<T>,
     attrs: &Tensor<T>,
     faces: &[[u32; 3]],
     s: &SoftSettings,
     pre: Option<Projected>,
+    fast: bool,
 ) -> Prep {
     let channels = attrs.shape()[1];
     let attrs: Vec<f64> = attrs.iter().map(|a| a.to_f64c()).collect();
     let dmax = s.cutoff_sq().sqrt();
     let (ndc, depth, bins) = match pre {
         Some(Projected { ndc, depth, rects }) if rects.len() == faces.len() => {
-            let bins = TileBins::with_rects(&ndc, &depth, faces, s.width, s.height, dmax, rects);
+            let bins =
+                TileBins::with_rects(&ndc, &depth, faces, s.width, s.height, dmax, rects, !fast);
             (ndc, depth, bins)
         }
         _ => {
@@ -322,7 +325,7 @@ fn prepare<T: Real>(
         channels,
         bins,
         pix: Vec::new(),
-        fast: false,
+        fast,
         pxp: Vec::new(),
         g32: Vec::new(),
     }
@@ -549,12 +552,12 @@ impl<T: Real> Op<T> for SoftRasOp {
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
         let pre = self.pre.take();
-        let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s, pre);
-        let (w, h, c) = (self.s.width, self.s.height, prep.channels);
-        prep.fast = T::as_f32(&[]).is_some()
-            && c <= fast::FAST_MAX_C
+        let fast = T::as_f32(&[]).is_some()
+            && inputs[1].shape()[1] <= fast::FAST_MAX_C
             && !self.s.perspective_correct
             && fast::f32_range_ok(&self.s);
+        let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s, pre, fast);
+        let (w, h, c) = (self.s.width, self.s.height, prep.channels);
         if prep.fast {
             prep.pxp = fast::padded_px(&prep.bins.px);
             prep.g32 = fast::geoms32(&prep.bins);
