@@ -567,7 +567,8 @@ impl<T: Real> Op<T> for SoftRasOp {
         if prep.fast {
             // Bands of image rows in parallel, each straight into its rows of the image and
             // of `pix` (every pixel written).
-            let bands = fast::band_faces(&prep.bins, h);
+            let rows = fast::band_rows(w);
+            let bands = fast::band_faces(&prep.bins, h, rows);
             let mut img = vec![T::from_f64c(0.0); h * w * (c + 1)];
             // Every value of `pix` is written by its band (no image-sized zeroing first).
             let mut pix: Vec<f64> = Vec::with_capacity(h * w * pstride);
@@ -575,10 +576,10 @@ impl<T: Real> Op<T> for SoftRasOp {
                 let prep = &prep;
                 let img32 = T::as_f32_mut(&mut img).expect("the fast path runs on f32 tapes");
                 img32
-                    .par_chunks_mut(fast::BAND * w * (c + 1))
+                    .par_chunks_mut(rows * w * (c + 1))
                     .zip(
                         pix.spare_capacity_mut()[..h * w * pstride]
-                            .par_chunks_mut(fast::BAND * w * pstride),
+                            .par_chunks_mut(rows * w * pstride),
                     )
                     .zip(bands.par_iter())
                     .enumerate()
@@ -589,7 +590,7 @@ impl<T: Real> Op<T> for SoftRasOp {
                         },
                     );
             }
-            // SAFETY: the capacity is h w pstride, and the bands (h / BAND rounded up, each
+            // SAFETY: the capacity is h w pstride, and the bands (h / rows rounded up, each
             // over its rows of every column) wrote all `pstride` values of each of their
             // pixels (`band_forward32` writes them for covered and uncovered pixels alike).
             unsafe { pix.set_len(h * w * pstride) };

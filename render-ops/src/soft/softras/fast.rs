@@ -36,11 +36,18 @@ use crate::soft::simd::{arr3, exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
 /// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
 pub(super) const FAST_MAX_C: usize = 4;
 
-/// Image rows per band of the forward: the forward runs over bands of whole image rows in
-/// parallel (not over 16 x 16 tiles as the `f64` evaluation), so that no row span is cut at
-/// tile columns into more 8-pixel chunks, and each band writes its own rows of the image and
-/// of the per-pixel aggregate directly.
-pub(super) const BAND: usize = 8;
+/// Image rows per band of the forward ([`band_rows`]): the forward runs over bands of whole
+/// image rows in parallel (not over 16 x 16 tiles as the `f64` evaluation), so that no row
+/// span is cut at tile columns into more 8-pixel chunks, and each band writes its own rows of
+/// the image and of the per-pixel aggregate directly. A band holds about `BAND_PIXELS` pixels
+/// (8 rows at 256 pixels a row, fewer rows for wider images), so that its per-pixel scratch
+/// and its list of kept chunks stay cache-sized.
+const BAND_PIXELS: usize = 2048;
+
+/// Rows per band for images `width` pixels wide (1 to 8).
+pub(super) fn band_rows(width: usize) -> usize {
+    (BAND_PIXELS / width.max(1)).clamp(1, 8)
+}
 
 /// One face's screen geometry in `f32`, relative to its first vertex `o` (set up once per
 /// forward for every face, [`geoms32`]).
@@ -270,7 +277,8 @@ struct Chunk {
     wn: [F8; 3],
 }
 
-/// Per-thread scratch of the `f32` forward (band-local row-major pixels, `BAND x width`).
+/// Per-thread scratch of the `f32` forward (band-local row-major pixels, [`band_rows`] x
+/// `width`).
 /// The per-pixel arrays hold [`LANES`] more values: a chunk starts at the first column of a
 /// row span, and its lanes past the span (masked, adding neutral values) may run into the next
 /// row or, on the last row, into this padding.
@@ -282,13 +290,13 @@ pub(super) struct Scratch32 {
     prod: Vec<f32>,
     zsum: Vec<f32>,
     lsum: Vec<f64>,
-    /// Attribute sums, channel-planar (`ch * (BAND * width + LANES) + lp`).
+    /// Attribute sums, channel-planar (`ch * (band_rows * width + LANES) + lp`).
     col: Vec<f32>,
 }
 
 impl Scratch32 {
     pub(super) fn new(c: usize, width: usize) -> Self {
-        let n = BAND * width + LANES;
+        let n = band_rows(width) * width + LANES;
         Self {
             // Room for a few chunks per band pixel (sigma 1e-4 at 256 x 256 keeps about one).
             chunks: Vec::with_capacity(n),
@@ -303,12 +311,16 @@ impl Scratch32 {
     }
 }
 
-/// The faces whose boxes reach each band of [`BAND`] image rows, in face order.
-pub(super) fn band_faces(bins: &crate::soft::common::TileBins, height: usize) -> Vec<Vec<u32>> {
-    let mut bands = vec![Vec::new(); height.div_ceil(BAND)];
+/// The faces whose boxes reach each band of `rows` image rows, in face order.
+pub(super) fn band_faces(
+    bins: &crate::soft::common::TileBins,
+    height: usize,
+    rows: usize,
+) -> Vec<Vec<u32>> {
+    let mut bands = vec![Vec::new(); height.div_ceil(rows)];
     for (fi, r) in bins.rects.iter().enumerate() {
         if r[0] <= r[1] {
-            for band in bands[r[2] as usize / BAND..=r[3] as usize / BAND].iter_mut() {
+            for band in bands[r[2] as usize / rows..=r[3] as usize / rows].iter_mut() {
                 band.push(fi as u32);
             }
         }
@@ -392,7 +404,7 @@ impl SoftRasOp {
 
     channel_kernel! {
         /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time, over band `band` of
-        /// [`BAND`] image rows with its faces `tf` ([`band_faces`]), into the band's rows of
+        /// [`band_rows`] image rows with its faces `tf` ([`band_faces`]), into the band's rows of
         /// the image (`img`, `C + 1` values a pixel) and of [`Prep::pix`] (`pix`).
         fn band_forward32 => band_forward32_impl(
             band: usize,
@@ -419,11 +431,12 @@ impl SoftRasOp {
         let bins = &prep.bins;
         let pxp = &prep.pxp[..];
         let w = s.width;
-        let r_base = band * BAND;
-        let r_last = (r_base + BAND).min(s.height) - 1;
+        let rows = band_rows(w);
+        let r_base = band * rows;
+        let r_last = (r_base + rows).min(s.height) - 1;
         // Band pixels, and the per-pixel scratch stride.
         let np = (r_last + 1 - r_base) * w;
-        let bp = BAND * w + LANES;
+        let bp = rows * w + LANES;
         let k = self.consts();
         let inv_gamma = F8::splat((1.0 / s.gamma) as f32);
         // The scratch as local slices (their lengths and addresses stay in registers).
@@ -954,14 +967,14 @@ mod tests {
         }
     }
 
-    /// An image whose height is not a multiple of the forward's [`super::BAND`] rows (a
+    /// An image whose height is not a multiple of the forward's [`super::band_rows`] (a
     /// partial last band) and whose width is not a multiple of 8 (chunks running into the
     /// padding): the same bits for 1 and 3 threads and from the portable build, and the
     /// `f64` evaluation's image and gradients within the tolerances above.
     #[test]
     fn f32_path_partial_band() {
         let size = 75;
-        assert_ne!(size % super::BAND, 0);
+        assert_ne!(size % super::band_rows(size), 0);
         let a = render::<f32>(3, size, 1e-4, 1);
         assert!(a == render::<f32>(3, size, 1e-4, 3), "3 threads differ");
         set_force_portable(true);
