@@ -13,8 +13,8 @@ use crate::raster::{RasterError, MAX_FRAGMENT_SLOTS};
 /// cut-off, touches. Each entry is a 4-byte face id (64 MB at the limit); the backwards keep
 /// one accumulator per face (`3 x (4 + C)` `f64` for SoftRas, `3 x 3` for DIB-R), not per
 /// entry. The forwards' per-tile scratch holds the kept (face, pixel) pairs of one tile at a
-/// time (48 bytes each for SoftRas, or 192 bytes per 8-pixel chunk on its `f32` path; 8 for
-/// DIB-R) per thread. A fine mesh of small faces needs a few entries per face; a huge cut-off (e.g. SoftRas
+/// time (48 bytes each for SoftRas; 8 for DIB-R) per thread, SoftRas's `f32` path those of one
+/// band of 8 image rows (192 bytes per 8-pixel chunk). A fine mesh of small faces needs a few entries per face; a huge cut-off (e.g. SoftRas
 /// `threshold` 0, which makes every face reach every pixel) multiplies faces by tiles and is
 /// refused with [`RasterError::TooLarge`] before anything is allocated.
 pub const MAX_SOFT_BIN_ENTRIES: usize = 1 << 24;
@@ -59,16 +59,16 @@ pub(crate) struct TileBins {
     pub rects: Vec<[i64; 4]>,
     /// Screen geometry per face (meaningful for faces that are not skipped).
     pub geoms: Vec<FaceGeom>,
+    /// Row-span constraints per face ([`TileBins::span`]), set up once per binning.
+    spans: Vec<FaceSpan>,
     /// NDC x of every pixel column's centre.
     pub px: Vec<f64>,
     /// NDC y of every pixel row's centre.
     pub py: Vec<f64>,
-    /// `px[col]` is `px0 + dpx * col` up to rounding (for [`TileBins::span`]).
-    px0: f64,
-    dpx: f64,
-    /// Cut-off distance the boxes were expanded by (NDC units).
-    dmax: f64,
 }
+
+/// The pixel box of a skipped face (empty: `c0 > c1`).
+pub(crate) const SKIPPED: [i64; 4] = [1, 0, 1, 0];
 
 impl TileBins {
     /// Bins the faces whose vertices all have `w > 0` (in `[MIN_W, 1 / MIN_W]`), NDC within
@@ -83,22 +83,51 @@ impl TileBins {
         dmax: f64,
         cull_backfaces: bool,
     ) -> Self {
+        let rects = faces
+            .par_iter()
+            .with_min_len(1024)
+            .map(|f| {
+                face_rect(ndc, depth, f, width, height, dmax, cull_backfaces).unwrap_or(SKIPPED)
+            })
+            .collect();
+        Self::with_rects(ndc, depth, faces, width, height, dmax, rects, true)
+    }
+
+    /// [`TileBins::new`] from the faces' pixel boxes as `face_rect` gives them (`SKIPPED`
+    /// for skipped faces), e.g. those [`check_memory`] computed for its count; the per-tile
+    /// face lists stay empty unless `bin_tiles` (for callers that walk faces, not tiles).
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_rects(
+        ndc: &[[f64; 2]],
+        depth: &[f64],
+        faces: &[[u32; 3]],
+        width: usize,
+        height: usize,
+        dmax: f64,
+        rects: Vec<[i64; 4]>,
+        bin_tiles: bool,
+    ) -> Self {
         let tiles_x = width.div_ceil(TILE);
         let tiles_y = height.div_ceil(TILE);
         let mut tiles = vec![Vec::new(); tiles_x * tiles_y];
-        // Boxes and geometry in parallel (per face, independent), binning in face order.
-        let (rects, geoms): (Vec<[i64; 4]>, Vec<FaceGeom>) = faces
+        let (px0, dpx) = (1.0 / width as f64 - 1.0, 2.0 / width as f64);
+        // Geometry and row-span constraints in parallel (per face, independent), binning in
+        // face order.
+        let (geoms, spans): (Vec<FaceGeom>, Vec<FaceSpan>) = faces
             .par_iter()
+            .zip(&rects)
             .with_min_len(1024)
-            .map(
-                |f| match face_rect(ndc, depth, f, width, height, dmax, cull_backfaces) {
-                    Some(rect) => (rect, FaceGeom::new(ndc, depth, f)),
-                    None => ([1, 0, 1, 0], FaceGeom::default()),
-                },
-            )
+            .map(|(f, rect)| {
+                if rect[0] > rect[1] {
+                    return (FaceGeom::default(), FaceSpan::default());
+                }
+                let g = FaceGeom::new(ndc, depth, f);
+                let sp = FaceSpan::new(&g, px0, dpx, dmax);
+                (g, sp)
+            })
             .unzip();
         for (fi, rect) in rects.iter().enumerate() {
-            if rect[0] > rect[1] {
+            if rect[0] > rect[1] || !bin_tiles {
                 continue;
             }
             for ty in rect[2] as usize / TILE..=rect[3] as usize / TILE {
@@ -118,41 +147,16 @@ impl TileBins {
             tiles,
             rects,
             geoms,
+            spans,
             px,
             py,
-            px0: 1.0 / width as f64 - 1.0,
-            dpx: 2.0 / width as f64,
-            dmax,
         }
     }
 
     /// The row spans of face `fi`'s cut-off region ([`FaceSpan`]).
     #[inline(always)]
     pub fn span(&self, fi: usize) -> FaceSpan {
-        let g = &self.geoms[fi];
-        let ox = self.px0 - g.v[0][0];
-        let mut sp = FaceSpan {
-            a: [0.0; 3],
-            by: [0.0; 3],
-            inv_s: [0.0; 3],
-        };
-        for k in 0..3 {
-            let b = g.bw[k];
-            // w_k(col, row) = b0 + b1 (px0 + dpx col - v0x) + b2 (py - v0y), needed
-            // >= lim = -dmax / alt_k; the margin covers the rounding of both evaluations.
-            let lim = -self.dmax / g.alt[k];
-            let err = 1e-10
-                * (b[0].abs()
-                    + b[1].abs() * (1.0 + g.v[0][0].abs())
-                    + b[2].abs() * (1.0 + g.v[0][1].abs())
-                    + lim.abs());
-            let s = b[1] * self.dpx;
-            // need(py) = lim - err - w_k(col 0) = a - by py; col >= need / s when s > 0.
-            sp.a[k] = lim - err - (b[0] + b[1] * ox - b[2] * g.v[0][1]);
-            sp.by[k] = b[2];
-            sp.inv_s[k] = 1.0 / s;
-        }
-        sp
+        self.spans[fi]
     }
 
     /// Runs `face(fi, out)` for every face with a non-empty box, in parallel and in
@@ -247,7 +251,7 @@ impl TileBins {
 /// interval (the scanline of the triangle dilated along its edge normals). It is widened by a
 /// relative margin and one column on each side, so the per-pixel test alone decides which
 /// pixels are kept: the set of kept pairs is that of the whole box.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub(crate) struct FaceSpan {
     a: [f64; 3],
     by: [f64; 3],
@@ -255,6 +259,30 @@ pub(crate) struct FaceSpan {
 }
 
 impl FaceSpan {
+    /// The constraints of face geometry `g` for cut-off `dmax` (NDC units), with column
+    /// centres `px[col] = px0 + dpx col` up to rounding.
+    fn new(g: &FaceGeom, px0: f64, dpx: f64, dmax: f64) -> Self {
+        let ox = px0 - g.v[0][0];
+        let mut sp = FaceSpan::default();
+        for k in 0..3 {
+            let b = g.bw[k];
+            // w_k(col, row) = b0 + b1 (px0 + dpx col - v0x) + b2 (py - v0y), needed
+            // >= lim = -dmax / alt_k; the margin covers the rounding of both evaluations.
+            let lim = -dmax / g.alt[k];
+            let err = 1e-10
+                * (b[0].abs()
+                    + b[1].abs() * (1.0 + g.v[0][0].abs())
+                    + b[2].abs() * (1.0 + g.v[0][1].abs())
+                    + lim.abs());
+            let s = b[1] * dpx;
+            // need(py) = lim - err - w_k(col 0) = a - by py; col >= need / s when s > 0.
+            sp.a[k] = lim - err - (b[0] + b[1] * ox - b[2] * g.v[0][1]);
+            sp.by[k] = b[2];
+            sp.inv_s[k] = 1.0 / s;
+        }
+        sp
+    }
+
     /// The columns within `[c0, c1]` of the row whose centres have NDC y `py`, or `None`.
     ///
     /// Per edge with `s > 0` the first column is `ceil(need / s) - 1`, with `s < 0` the last
@@ -381,6 +409,29 @@ pub(crate) fn check_memory<T: Real>(
     dmax: f64,
     cull_backfaces: bool,
 ) -> Result<(), RasterError> {
+    check_memory_projected(op, clip, faces, width, height, dmax, cull_backfaces).map(|_| ())
+}
+
+/// What [`check_memory_projected`] computed for its count: the vertices' NDC and view depth
+/// ([`project`]) and the faces' pixel boxes, for [`TileBins::with_rects`], so that the op's
+/// forward need not redo them.
+pub(crate) struct Projected {
+    pub ndc: Vec<[f64; 2]>,
+    pub depth: Vec<f64>,
+    pub rects: Vec<[i64; 4]>,
+}
+
+/// [`check_memory`], returning its projection and face boxes when it computed them (`None`
+/// where it left `clip` to the op).
+pub(crate) fn check_memory_projected<T: Real>(
+    op: &str,
+    clip: &Var<'_, T>,
+    faces: &[[u32; 3]],
+    width: usize,
+    height: usize,
+    dmax: f64,
+    cull_backfaces: bool,
+) -> Result<Option<Projected>, RasterError> {
     let pixels = width.saturating_mul(height);
     if pixels > MAX_FRAGMENT_SLOTS {
         return Err(RasterError::TooLarge {
@@ -391,10 +442,10 @@ pub(crate) fn check_memory<T: Real>(
         });
     }
     let Ok(clip) = clip.value() else {
-        return Ok(());
+        return Ok(None);
     };
     if clip.ndim() != 2 || clip.shape()[1] != 4 {
-        return Ok(());
+        return Ok(None);
     }
     // NaN or Inf coordinates are refused, as by the hard rasterizer.
     for (v, row) in clip.outer_iter().enumerate() {
@@ -410,18 +461,22 @@ pub(crate) fn check_memory<T: Real>(
         .iter()
         .any(|f| f.iter().any(|&i| i as usize >= ndc.len()))
     {
-        return Ok(());
+        return Ok(None);
     }
-    // Per-face counts in parallel, summed exactly (u128 cannot overflow here).
-    let total: u128 = faces
+    // Per-face boxes in parallel, their tile counts summed exactly (u128 cannot overflow
+    // here).
+    let rects: Vec<[i64; 4]> = faces
         .par_iter()
         .with_min_len(1024)
-        .map(|f| {
-            face_rect(&ndc, &depth, f, width, height, dmax, cull_backfaces).map_or(0, |r| {
-                let tx = (r[1] as usize / TILE - r[0] as usize / TILE + 1) as u128;
-                let ty = (r[3] as usize / TILE - r[2] as usize / TILE + 1) as u128;
-                tx * ty
-            })
+        .map(|f| face_rect(&ndc, &depth, f, width, height, dmax, cull_backfaces).unwrap_or(SKIPPED))
+        .collect();
+    let total: u128 = rects
+        .iter()
+        .filter(|r| r[0] <= r[1])
+        .map(|r| {
+            let tx = (r[1] as usize / TILE - r[0] as usize / TILE + 1) as u128;
+            let ty = (r[3] as usize / TILE - r[2] as usize / TILE + 1) as u128;
+            tx * ty
         })
         .sum();
     let entries = total.min(usize::MAX as u128) as usize;
@@ -436,7 +491,7 @@ pub(crate) fn check_memory<T: Real>(
             limit: MAX_SOFT_BIN_ENTRIES,
         });
     }
-    Ok(())
+    Ok(Some(Projected { ndc, depth, rects }))
 }
 
 /// The closest point of a triangle's boundary to a point `p`: on edge `edge` (from vertex

@@ -31,7 +31,9 @@
 //! some `D = 1`); where `P >= 1/2` the silhouette is `-expm1(sum log1p(-D))` for full relative
 //! precision of faint coverage. Its gradient is `d(1 - P)/dx_f = P D_f`, with no division by `1 - D_f`.
 //!
-//! `f32` tapes ([`fast`]): the same two-pass forward and per-face backward, with each row
+//! `f32` tapes ([`fast`]): the same two-pass forward (over bands of 8 whole image rows
+//! instead of tiles, so that row spans are not cut at tile columns, each band writing its
+//! rows of the image and of the aggregate directly) and per-face backward, with each row
 //! span evaluated 8 consecutive pixels at a time in single precision (eight-lane values the
 //! compiler turns into AVX2 instructions in a build selected by runtime CPU detection, with a
 //! portable build of the same source otherwise; both give the same bits). All three edges'
@@ -47,7 +49,8 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom, TileBins, TILE,
+    check_memory_projected, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom,
+    Projected, TileBins, TILE,
 };
 use crate::error::RenderError;
 
@@ -177,7 +180,7 @@ pub fn softras<'t, T: Real>(
         )
         .into());
     }
-    check_memory(
+    let pre = check_memory_projected(
         "softras",
         &clip,
         &faces,
@@ -190,6 +193,7 @@ pub fn softras<'t, T: Real>(
         faces,
         s: settings.clone(),
         prep: None,
+        pre,
     };
     Ok(clip.tape().apply(op, &[clip, attrs]))
 }
@@ -210,6 +214,8 @@ struct Prep {
     fast: bool,
     /// Column centres padded for 8-lane chunks (fast path only).
     pxp: Vec<f64>,
+    /// Per face, its `f32` geometry (fast path only).
+    g32: Vec<fast::Geom32>,
 }
 
 /// Leading per-pixel values of [`Prep::pix`] before the attributes.
@@ -269,6 +275,10 @@ struct SoftRasOp {
     faces: Arc<Vec<[u32; 3]>>,
     s: SoftSettings,
     prep: Option<Arc<Prep>>,
+    /// The projection and face boxes of the clip positions the op was built for, from the
+    /// memory check in [`softras`] (the tape runs the forward on those values right after):
+    /// taken by the first forward instead of projecting and boxing the faces again.
+    pre: Option<Projected>,
 }
 
 /// `(sigmoid(x), sigmoid(-x))` from one exponential `e = exp(-|x|)`, both to full relative
@@ -283,24 +293,31 @@ fn sigmoid_from(x: f64, e: f64) -> (f64, f64) {
     }
 }
 
+/// Projection (or `pre`'s, computed from the same `clip` by the memory check) and binning
+/// (faces into tiles only when not on the `fast` path, whose forward walks bands of rows).
 fn prepare<T: Real>(
     clip: &Tensor<T>,
     attrs: &Tensor<T>,
     faces: &[[u32; 3]],
     s: &SoftSettings,
+    pre: Option<Projected>,
+    fast: bool,
 ) -> Prep {
     let channels = attrs.shape()[1];
-    let (ndc, depth) = project(clip);
     let attrs: Vec<f64> = attrs.iter().map(|a| a.to_f64c()).collect();
-    let bins = TileBins::new(
-        &ndc,
-        &depth,
-        faces,
-        s.width,
-        s.height,
-        s.cutoff_sq().sqrt(),
-        false,
-    );
+    let dmax = s.cutoff_sq().sqrt();
+    let (ndc, depth, bins) = match pre {
+        Some(Projected { ndc, depth, rects }) if rects.len() == faces.len() => {
+            let bins =
+                TileBins::with_rects(&ndc, &depth, faces, s.width, s.height, dmax, rects, !fast);
+            (ndc, depth, bins)
+        }
+        _ => {
+            let (ndc, depth) = project(clip);
+            let bins = TileBins::new(&ndc, &depth, faces, s.width, s.height, dmax, false);
+            (ndc, depth, bins)
+        }
+    };
     Prep {
         ndc,
         depth,
@@ -308,8 +325,9 @@ fn prepare<T: Real>(
         channels,
         bins,
         pix: Vec::new(),
-        fast: false,
+        fast,
         pxp: Vec::new(),
+        g32: Vec::new(),
     }
 }
 
@@ -533,16 +551,55 @@ impl<T: Real> Op<T> for SoftRasOp {
     }
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s);
-        let (w, h, c) = (self.s.width, self.s.height, prep.channels);
-        prep.fast = T::as_f32(&[]).is_some()
-            && c <= fast::FAST_MAX_C
+        let pre = self.pre.take();
+        let fast = T::as_f32(&[]).is_some()
+            && inputs[1].shape()[1] <= fast::FAST_MAX_C
             && !self.s.perspective_correct
             && fast::f32_range_ok(&self.s);
+        let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s, pre, fast);
+        let (w, h, c) = (self.s.width, self.s.height, prep.channels);
         if prep.fast {
             prep.pxp = fast::padded_px(&prep.bins.px);
+            prep.g32 = fast::geoms32(&prep.bins);
         }
         let this = &*self;
+        let pstride = PIX_STATS + c;
+        if prep.fast {
+            // Bands of image rows in parallel, each straight into its rows of the image and
+            // of `pix` (every pixel written).
+            let rows = fast::band_rows(w);
+            let bands = fast::band_faces(&prep.bins, h, rows);
+            let mut img = vec![T::from_f64c(0.0); h * w * (c + 1)];
+            // Every value of `pix` is written by its band (no image-sized zeroing first).
+            let mut pix: Vec<f64> = Vec::with_capacity(h * w * pstride);
+            {
+                let prep = &prep;
+                let img32 = T::as_f32_mut(&mut img).expect("the fast path runs on f32 tapes");
+                img32
+                    .par_chunks_mut(rows * w * (c + 1))
+                    .zip(
+                        pix.spare_capacity_mut()[..h * w * pstride]
+                            .par_chunks_mut(rows * w * pstride),
+                    )
+                    .zip(bands.par_iter())
+                    .enumerate()
+                    .for_each_init(
+                        || fast::Scratch32::new(c, w),
+                        |sc, (band, ((irow, prow), tf))| {
+                            this.band_forward32(prep, band, tf, sc, irow, prow)
+                        },
+                    );
+            }
+            // SAFETY: the capacity is h w pstride, and the bands (h / rows rounded up, each
+            // over its rows of every column) wrote all `pstride` values of each of their
+            // pixels (`band_forward32` writes them for covered and uncovered pixels alike).
+            unsafe { pix.set_len(h * w * pstride) };
+            prep.pix = pix;
+            self.prep = Some(Arc::new(prep));
+            return Ok(vec![
+                ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c+1")
+            ]);
+        }
         let bg: Vec<f64> = (0..c)
             .map(|ch| this.s.background.get(ch).copied().unwrap_or(0.0))
             .chain([0.0])
@@ -553,41 +610,23 @@ impl<T: Real> Op<T> for SoftRasOp {
         let tiles: Vec<Vec<f64>> = {
             let prep = &prep;
             let bins = &prep.bins;
-            if prep.fast {
-                (0..bins.tiles.len())
-                    .into_par_iter()
-                    .map_init(
-                        || fast::Scratch32::new(c),
-                        |sc, t| {
-                            let mut out = Vec::new();
-                            if !bins.tiles[t].is_empty() {
-                                out.reserve(TILE * TILE * per);
-                                this.tile_forward32(prep, &prep.pxp, t, sc, &mut out);
-                            }
-                            out
-                        },
-                    )
-                    .collect()
-            } else {
-                (0..bins.tiles.len())
-                    .into_par_iter()
-                    .map_init(
-                        || TileScratch::new(c),
-                        |sc, t| {
-                            let mut out = Vec::new();
-                            if !bins.tiles[t].is_empty() {
-                                out.reserve(TILE * TILE * per);
-                                this.tile_forward(prep, t, sc, &mut out);
-                            }
-                            out
-                        },
-                    )
-                    .collect()
-            }
+            (0..bins.tiles.len())
+                .into_par_iter()
+                .map_init(
+                    || TileScratch::new(c),
+                    |sc, t| {
+                        let mut out = Vec::new();
+                        if !bins.tiles[t].is_empty() {
+                            out.reserve(TILE * TILE * per);
+                            this.tile_forward(prep, t, sc, &mut out);
+                        }
+                        out
+                    },
+                )
+                .collect()
         };
         // Rows in parallel, each from the tiles of its tile row into the image and `pix`.
         let bins = &prep.bins;
-        let pstride = PIX_STATS + c;
         let mut img = vec![T::from_f64c(0.0); h * w * (c + 1)];
         let mut pix = vec![0.0; h * w * pstride];
         img.par_chunks_mut(w * (c + 1))

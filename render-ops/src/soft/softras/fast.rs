@@ -25,25 +25,34 @@
 //! by less than that relative amount times `1 / D` of the largest term, far below `f32`
 //! precision for any `D >= threshold >= 1e-30`.
 
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
 
 use super::{Prep, SoftRasOp, PIX_STATS};
-use crate::soft::common::{exp, FaceGeom, TILE};
+use crate::soft::common::{exp, FaceGeom};
 use crate::soft::simd::{arr3, exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
 
 /// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
 pub(super) const FAST_MAX_C: usize = 4;
 
-/// Tile pixels.
-const TP: usize = TILE * TILE;
-/// Per-pixel scratch arrays of a tile hold [`LANES`] more values: a chunk starts at the first
-/// column of a row span, and its lanes past the span (masked, adding neutral values) may run
-/// into the next row or, on the last row, into this padding.
-const TPP: usize = TP + LANES;
+/// Image rows per band of the forward ([`band_rows`]): the forward runs over bands of whole
+/// image rows in parallel (not over 16 x 16 tiles as the `f64` evaluation), so that no row
+/// span is cut at tile columns into more 8-pixel chunks, and each band writes its own rows of
+/// the image and of the per-pixel aggregate directly. A band holds about `BAND_PIXELS` pixels
+/// (8 rows at 256 pixels a row, fewer rows for wider images), so that its per-pixel scratch
+/// and its list of kept chunks stay cache-sized.
+const BAND_PIXELS: usize = 2048;
 
-/// One face's screen geometry in `f32`, relative to its first vertex `o`.
+/// Rows per band for images `width` pixels wide (1 to 8).
+pub(super) fn band_rows(width: usize) -> usize {
+    (BAND_PIXELS / width.max(1)).clamp(1, 8)
+}
+
+/// One face's screen geometry in `f32`, relative to its first vertex `o` (set up once per
+/// forward for every face, [`geoms32`]).
 #[derive(Clone, Copy)]
-struct Geom32 {
+pub(super) struct Geom32 {
     /// First vertex (origin of the relative coordinates), NDC, `f64`.
     o: [f64; 2],
     /// `w_k(q) = bw[k][0] + bw[k][1] q_x + bw[k][2] q_y`, `q = p - o`.
@@ -76,6 +85,16 @@ impl Geom32 {
             inv_d: g.inv_d.map(|x| x as f32),
         }
     }
+}
+
+/// [`Geom32`] of every face of `bins` (in parallel; skipped faces get that of the default
+/// geometry, never read).
+pub(super) fn geoms32(bins: &crate::soft::common::TileBins) -> Vec<Geom32> {
+    bins.geoms
+        .par_iter()
+        .with_min_len(1024)
+        .map(Geom32::new)
+        .collect()
 }
 
 /// Constants of one render.
@@ -258,32 +277,55 @@ struct Chunk {
     wn: [F8; 3],
 }
 
-/// Per-thread scratch of the `f32` forward (tile-local row-major pixels).
+/// Per-thread scratch of the `f32` forward (band-local row-major pixels, [`band_rows`] x
+/// `width`).
+/// The per-pixel arrays hold [`LANES`] more values: a chunk starts at the first column of a
+/// row span, and its lanes past the span (masked, adding neutral values) may run into the next
+/// row or, on the last row, into this padding.
 pub(super) struct Scratch32 {
     chunks: Vec<Chunk>,
     runs: Vec<usize>,
-    count: [f32; TPP],
-    umin: [f32; TPP],
-    prod: [f32; TPP],
-    zsum: [f32; TPP],
-    lsum: [f64; TPP],
-    /// Attribute sums, channel-planar (`ch * TPP + lp`).
+    count: Vec<f32>,
+    umin: Vec<f32>,
+    prod: Vec<f32>,
+    zsum: Vec<f32>,
+    lsum: Vec<f64>,
+    /// Attribute sums, channel-planar (`ch * (band_rows * width + LANES) + lp`).
     col: Vec<f32>,
 }
 
 impl Scratch32 {
-    pub(super) fn new(c: usize) -> Self {
+    pub(super) fn new(c: usize, width: usize) -> Self {
+        let n = band_rows(width) * width + LANES;
         Self {
-            chunks: Vec::new(),
+            // Room for a few chunks per band pixel (sigma 1e-4 at 256 x 256 keeps about one).
+            chunks: Vec::with_capacity(n),
             runs: Vec::new(),
-            count: [0.0; TPP],
-            umin: [0.0; TPP],
-            prod: [0.0; TPP],
-            zsum: [0.0; TPP],
-            lsum: [0.0; TPP],
-            col: vec![0.0; c * TPP],
+            count: vec![0.0; n],
+            umin: vec![0.0; n],
+            prod: vec![0.0; n],
+            zsum: vec![0.0; n],
+            lsum: vec![0.0; n],
+            col: vec![0.0; c * n],
         }
     }
+}
+
+/// The faces whose boxes reach each band of `rows` image rows, in face order.
+pub(super) fn band_faces(
+    bins: &crate::soft::common::TileBins,
+    height: usize,
+    rows: usize,
+) -> Vec<Vec<u32>> {
+    let mut bands = vec![Vec::new(); height.div_ceil(rows)];
+    for (fi, r) in bins.rects.iter().enumerate() {
+        if r[0] <= r[1] {
+            for band in bands[r[2] as usize / rows..=r[3] as usize / rows].iter_mut() {
+                band.push(fi as u32);
+            }
+        }
+    }
+    bands
 }
 
 /// `m = max(eps, max_f zn_f)` of a pixel from its `u_min` (start value `u0 = 1 - eps` in
@@ -361,45 +403,78 @@ impl SoftRasOp {
     }
 
     channel_kernel! {
-        /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time (same outputs, same layout).
-        fn tile_forward32 => tile_forward32_impl(
-            pxp: &[f64],
-            t: usize,
+        /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time, over band `band` of
+        /// [`band_rows`] image rows with its faces `tf` ([`band_faces`]), into the band's rows of
+        /// the image (`img`, `C + 1` values a pixel) and of [`Prep::pix`] (`pix`).
+        fn band_forward32 => band_forward32_impl(
+            band: usize,
+            tf: &[u32],
             sc: &mut Scratch32,
-            out: &mut Vec<f64>,
+            img: &mut [f32],
+            pix: &mut [MaybeUninit<f64>],
         )
     }
 
     #[inline(always)]
-    fn tile_forward32_impl<const C: usize>(
+    fn band_forward32_impl<const C: usize>(
         &self,
         prep: &Prep,
-        pxp: &[f64],
-        t: usize,
+        band: usize,
+        tf: &[u32],
         sc: &mut Scratch32,
-        out: &mut Vec<f64>,
+        img: &mut [f32],
+        pix: &mut [MaybeUninit<f64>],
     ) {
         let s = &self.s;
         let c = C;
         debug_assert_eq!(prep.channels, C);
         let bins = &prep.bins;
-        let tf = &bins.tiles[t];
-        let (c_base, r_base) = ((t % bins.tiles_x) * TILE, (t / bins.tiles_x) * TILE);
+        let pxp = &prep.pxp[..];
+        let w = s.width;
+        let rows = band_rows(w);
+        let r_base = band * rows;
+        let r_last = (r_base + rows).min(s.height) - 1;
+        // Band pixels, and the per-pixel scratch stride.
+        let np = (r_last + 1 - r_base) * w;
+        let bp = rows * w + LANES;
         let k = self.consts();
         let inv_gamma = F8::splat((1.0 / s.gamma) as f32);
-        sc.chunks.clear();
-        sc.runs.clear();
-        sc.count.fill(0.0);
-        sc.umin.fill((1.0 - s.eps) as f32);
-        sc.prod.fill(1.0);
+        // The scratch as local slices (their lengths and addresses stay in registers).
+        let Scratch32 {
+            chunks,
+            runs,
+            count,
+            umin,
+            prod,
+            zsum,
+            lsum,
+            col,
+        } = sc;
+        let (count, umin, prod) = (
+            &mut count[..np + LANES],
+            &mut umin[..np + LANES],
+            &mut prod[..np + LANES],
+        );
+        let (zsum, lsum, col) = (
+            &mut zsum[..np + LANES],
+            &mut lsum[..np + LANES],
+            &mut col[..c * bp],
+        );
+        chunks.clear();
+        runs.clear();
+        count.fill(0.0);
+        umin.fill((1.0 - s.eps) as f32);
+        prod.fill(1.0);
         // Pass 1: pairs, u_min and P.
         for &fi in tf.iter() {
-            sc.runs.push(sc.chunks.len());
-            let Some([c0, c1, r0, r1]) = bins.face_in_tile(fi as usize, t, s.width, s.height)
-            else {
+            runs.push(chunks.len());
+            let rc = bins.rects[fi as usize];
+            let (c0, c1) = (rc[0] as usize, rc[1] as usize);
+            let (r0, r1) = ((rc[2] as usize).max(r_base), (rc[3] as usize).min(r_last));
+            if r0 > r1 {
                 continue;
-            };
-            let g = Geom32::new(&bins.geoms[fi as usize]);
+            }
+            let g = prep.g32[fi as usize];
             let span = bins.span(fi as usize);
             for row in r0..=r1 {
                 let py = bins.py[row];
@@ -412,12 +487,12 @@ impl SoftRasOp {
                     let valid = lanes_to(cs, b);
                     if let Some(p) = pair8(&g, offsets(pxp, cs, g.o[0]), qy, valid, &k) {
                         let (dd, omd) = sigmoid8(&p);
-                        let lp = (row - r_base) * TILE + cs - c_base;
+                        let lp = (row - r_base) * w + cs;
                         let ones = select(p.keep, F8::splat(1.0), F8::splat(0.0));
-                        (F8::load(&sc.count[lp..]) + ones).store(&mut sc.count[lp..]);
-                        F8::load(&sc.umin[lp..]).min(p.u).store(&mut sc.umin[lp..]);
-                        (F8::load(&sc.prod[lp..]) * omd).store(&mut sc.prod[lp..]);
-                        sc.chunks.push(Chunk {
+                        (F8::load(&count[lp..]) + ones).store(&mut count[lp..]);
+                        F8::load(&umin[lp..]).min(p.u).store(&mut umin[lp..]);
+                        (F8::load(&prod[lp..]) * omd).store(&mut prod[lp..]);
+                        chunks.push(Chunk {
                             lp,
                             dd,
                             u: p.u,
@@ -428,27 +503,27 @@ impl SoftRasOp {
                 }
             }
         }
-        sc.runs.push(sc.chunks.len());
+        runs.push(chunks.len());
         // Background terms, e_b = exp((eps - m) / gamma), m = 1 - u_min (exactly eps where
         // no face has zn > eps, u_min still at its start value).
         let u0 = (1.0 - s.eps) as f32;
-        for lp in 0..TP {
+        for lp in 0..np {
             // exp(0) = 1 where m = eps (no face in front of the background).
-            let eb = if sc.umin[lp] >= u0 {
+            let eb = if umin[lp] >= u0 {
                 1.0
             } else {
-                exp((s.eps - pixel_m(sc.umin[lp], u0, s.eps)) / s.gamma)
+                exp((s.eps - pixel_m(umin[lp], u0, s.eps)) / s.gamma)
             };
-            sc.zsum[lp] = eb as f32;
-            sc.lsum[lp] = 0.0;
+            zsum[lp] = eb as f32;
+            lsum[lp] = 0.0;
             for ch in 0..c {
-                sc.col[ch * TPP + lp] = (eb * s.background.get(ch).copied().unwrap_or(0.0)) as f32;
+                col[ch * bp + lp] = (eb * s.background.get(ch).copied().unwrap_or(0.0)) as f32;
             }
         }
         // Pass 2: the blend (eq. (6)), e_f = exp((u_min - u_f) / gamma).
         let mut fa = [[F8::default(); FAST_MAX_C]; 3];
         for (li, &fi) in tf.iter().enumerate() {
-            let chunks = &sc.chunks[sc.runs[li]..sc.runs[li + 1]];
+            let chunks = &chunks[runs[li]..runs[li + 1]];
             if chunks.is_empty() {
                 continue;
             }
@@ -460,7 +535,7 @@ impl SoftRasOp {
             }
             for ck in chunks {
                 let lp = ck.lp;
-                let tt = (F8::load(&sc.umin[lp..]) - ck.u) * inv_gamma;
+                let tt = (F8::load(&umin[lp..]) - ck.u) * inv_gamma;
                 let under = tt.lt(F8::splat(EXP_MIN));
                 // Occluded faces (every e_f 0) add exact zeros: skipped, exponential included.
                 let we = if (!under).any() {
@@ -469,51 +544,63 @@ impl SoftRasOp {
                     F8::splat(0.0)
                 };
                 if we.gt(F8::splat(0.0)).any() {
-                    (F8::load(&sc.zsum[lp..]) + we).store(&mut sc.zsum[lp..]);
+                    (F8::load(&zsum[lp..]) + we).store(&mut zsum[lp..]);
                     for ch in 0..c {
                         let a = ck.wn[0] * fa[0][ch] + ck.wn[1] * fa[1][ch] + ck.wn[2] * fa[2][ch];
-                        let o = ch * TPP + lp;
-                        (F8::load(&sc.col[o..]) + we * a).store(&mut sc.col[o..]);
+                        let o = ch * bp + lp;
+                        (F8::load(&col[o..]) + we * a).store(&mut col[o..]);
                     }
                 }
                 // Faint coverage (P >= 1/2): sum log1p(-D) in f64 for the silhouette.
-                let faint = F8::load(&sc.prod[lp..]).ge(F8::splat(0.5)) & ck.dd.gt(F8::splat(0.0));
+                let faint = F8::load(&prod[lp..]).ge(F8::splat(0.5)) & ck.dd.gt(F8::splat(0.0));
                 if faint.any() {
                     for l in 0..LANES {
                         if faint.lane(l) {
-                            sc.lsum[lp + l] += (-(ck.dd.0[l] as f64)).ln_1p();
+                            lsum[lp + l] += (-(ck.dd.0[l] as f64)).ln_1p();
                         }
                     }
                 }
             }
         }
-        out.clear();
-        for lp in 0..TP {
-            if sc.count[lp] == 0.0 {
-                out.extend((0..c).map(|ch| s.background.get(ch).copied().unwrap_or(0.0)));
-                out.push(0.0);
-            } else {
-                let z = sc.zsum[lp] as f64;
-                out.extend((0..c).map(|ch| sc.col[ch * TPP + lp] as f64 / z));
-                let p = sc.prod[lp] as f64;
-                out.push(if p < 0.5 {
-                    1.0 - p
-                } else {
-                    -sc.lsum[lp].exp_m1()
-                });
+        // The band's rows of the image and of the per-pixel aggregate. Pixels no pair reaches
+        // get the background and `Z = 0`, which makes the backward skip them ([`Planes`]).
+        let pstride = PIX_STATS + c;
+        let bg: [f64; FAST_MAX_C] =
+            std::array::from_fn(|ch| s.background.get(ch).copied().unwrap_or(0.0));
+        let pixels = img[..np * (c + 1)]
+            .chunks_exact_mut(c + 1)
+            .zip(pix[..np * pstride].chunks_exact_mut(pstride))
+            .enumerate();
+        for (lp, (io, po)) in pixels {
+            if count[lp] == 0.0 {
+                for ch in 0..c {
+                    io[ch] = bg[ch] as f32;
+                    po[PIX_STATS + ch].write(bg[ch]);
+                }
+                io[c] = 0.0;
+                po[0].write(s.eps);
+                po[1].write(0.0);
+                po[2].write(1.0);
+                continue;
             }
-            out.extend([
-                pixel_m(sc.umin[lp], u0, s.eps),
-                sc.zsum[lp] as f64,
-                sc.prod[lp] as f64,
-            ]);
+            let z = zsum[lp] as f64;
+            for ch in 0..c {
+                let v = col[ch * bp + lp] as f64 / z;
+                io[ch] = v as f32;
+                po[PIX_STATS + ch].write(v);
+            }
+            let p = prod[lp] as f64;
+            io[c] = (if p < 0.5 { 1.0 - p } else { -lsum[lp].exp_m1() }) as f32;
+            po[0].write(pixel_m(umin[lp], u0, s.eps));
+            po[1].write(z);
+            po[2].write(p);
         }
     }
 }
 
 /// The backward's per-pixel values for the `f32` path, planar (`plane * n + pixel`, `n` the
 /// pixel count plus [`LANES`] of padding): the `C` attribute gradients `g`, then `g_alpha P`,
-/// `g . I`, `1 / Z` and `u_min = 1 - m` (`-inf` where `g` is 0 or no face reaches the pixel:
+/// `g . I`, `1 / Z` and `u_min = 1 - m` (`-inf` where `g` is 0 or no pair was kept at the pixel:
 /// it is skipped, and its other values are 0).
 pub(super) struct Planes {
     pub v: Vec<f32>,
@@ -539,16 +626,21 @@ impl Planes {
         let pstride = PIX_STATS + C;
         let pixels = go.len() / (C + 1);
         let n = pixels + LANES;
-        let mut v = vec![0.0f32; (C + 4) * n];
+        // Every value is written exactly once below (no image-sized zeroing first).
+        let mut v: Vec<f32> = Vec::with_capacity((C + 4) * n);
         // Blocks of pixels in parallel, each writing its part of every plane (the values
-        // depend on their pixel only).
+        // depend on their pixel only); the padding here.
         const BLOCK: usize = 4096;
-        let mut blocks: Vec<Vec<&mut [f32]>> = (0..pixels.div_ceil(BLOCK))
+        let mut blocks: Vec<Vec<&mut [MaybeUninit<f32>]>> = (0..pixels.div_ceil(BLOCK))
             .map(|_| Vec::with_capacity(C + 4))
             .collect();
-        for (i, plane) in v.chunks_mut(n).enumerate() {
-            if i == C + 3 {
-                plane.fill(f32::NEG_INFINITY);
+        for (i, plane) in v.spare_capacity_mut()[..(C + 4) * n]
+            .chunks_mut(n)
+            .enumerate()
+        {
+            let pad = if i == C + 3 { f32::NEG_INFINITY } else { 0.0 };
+            for x in &mut plane[pixels..] {
+                x.write(pad);
             }
             for (b, part) in plane[..pixels].chunks_mut(BLOCK).enumerate() {
                 blocks[b].push(part);
@@ -560,22 +652,30 @@ impl Planes {
             let gs = go[p0 * (C + 1)..(p0 + len) * (C + 1)].chunks_exact(C + 1);
             let sts = prep.pix[p0 * pstride..(p0 + len) * pstride].chunks_exact(pstride);
             for (j, (g, st)) in gs.zip(sts).enumerate() {
-                // Pixels no face reaches (empty tiles leave Z = 0) have no pairs: skipped
+                // Pixels where no pair was kept (the forward leaves Z = 0) are skipped
                 // too.
                 if g.iter().all(|&x| x == 0.0) || !(st[1] > 0.0) {
+                    for plane in out[..C + 3].iter_mut() {
+                        plane[j].write(0.0);
+                    }
+                    out[C + 3][j].write(f32::NEG_INFINITY);
                     continue;
                 }
                 let mut gi = 0.0;
                 for ch in 0..C {
-                    out[ch][j] = g[ch];
+                    out[ch][j].write(g[ch]);
                     gi += g[ch] as f64 * st[PIX_STATS + ch];
                 }
-                out[C][j] = (g[C] as f64 * st[2]) as f32;
-                out[C + 1][j] = gi as f32;
-                out[C + 2][j] = (1.0 / st[1]) as f32;
-                out[C + 3][j] = (1.0 - st[0]) as f32;
+                out[C][j].write((g[C] as f64 * st[2]) as f32);
+                out[C + 1][j].write(gi as f32);
+                out[C + 2][j].write((1.0 / st[1]) as f32);
+                out[C + 3][j].write((1.0 - st[0]) as f32);
             }
         });
+        // SAFETY: the capacity is at least (C + 4) n, and each of those values was written
+        // above: every plane's padding by the loop over planes, and its `pixels` values by
+        // the block of their pixel (every pixel, skipped or not, writes all C + 4 planes).
+        unsafe { v.set_len((C + 4) * n) };
         Self { v, n }
     }
 }
@@ -612,7 +712,7 @@ impl SoftRasOp {
         let stride = 4 + c;
         let f = self.faces[fi];
         let geom = &bins.geoms[fi];
-        let g = Geom32::new(geom);
+        let g = prep.g32[fi];
         let k = self.consts();
         let inv_area = F8::splat((1.0 / geom.area) as f32);
         let inv_gamma = F8::splat((1.0 / s.gamma) as f32);
@@ -865,6 +965,30 @@ mod tests {
             assert!(ep < 2e-4 && mp < 5e-4, "positions {ep} {mp}");
             assert!(ec < 1e-5 && mc < 2e-5, "colours {ec} {mc}");
         }
+    }
+
+    /// An image whose height is not a multiple of the forward's [`super::band_rows`] (a
+    /// partial last band) and whose width is not a multiple of 8 (chunks running into the
+    /// padding): the same bits for 1 and 3 threads and from the portable build, and the
+    /// `f64` evaluation's image and gradients within the tolerances above.
+    #[test]
+    fn f32_path_partial_band() {
+        let size = 75;
+        assert_ne!(size % super::band_rows(size), 0);
+        let a = render::<f32>(3, size, 1e-4, 1);
+        assert!(a == render::<f32>(3, size, 1e-4, 3), "3 threads differ");
+        set_force_portable(true);
+        let b = render::<f32>(3, size, 1e-4, 2);
+        set_force_portable(false);
+        assert!(a == b, "portable build differs");
+        let (i64_, gp64, gc64) = render::<f64>(3, size, 1e-4, 2);
+        let di =
+            a.0.iter()
+                .zip(&i64_)
+                .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
+        assert!(di < 1e-4, "image {di}");
+        let (ep, ec) = (rel_l2(&a.1, &gp64), rel_l2(&a.2, &gc64));
+        assert!(ep < 2e-4 && ec < 1e-5, "positions {ep}, colours {ec}");
     }
 
     /// Settings outside `f32`'s range (here `1 / sigma`) take the `f64` evaluation and stay
