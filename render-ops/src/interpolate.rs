@@ -133,7 +133,8 @@ fn grad_attributes<T: Real, const C: usize>(
                 // changes.
                 let g = &as_arrays::<T, C>(g)[i0..i1];
                 let mut run = [[0.0f64; C]; 3];
-                let mut cur = frag_face.get(i0).copied().unwrap_or(u32::MAX);
+                // Chunks are non-empty (`i0 < i1`).
+                let mut cur = frag_face[i0];
                 for ((&fi, b), gi) in frag_face[i0..i1].iter().zip(&bary[i0..i1]).zip(g) {
                     if fi != cur {
                         fs.push(cur);
@@ -148,10 +149,8 @@ fn grad_attributes<T: Real, const C: usize>(
                         }
                     }
                 }
-                if i1 > i0 {
-                    fs.push(cur);
-                    vals.extend(run.iter().flatten());
-                }
+                fs.push(cur);
+                vals.extend(run.iter().flatten());
                 return (fs, vals);
             }
             let mut cur = u32::MAX;

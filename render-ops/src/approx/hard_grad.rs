@@ -18,7 +18,7 @@
 use autodiff::Real;
 use rayon::prelude::*;
 
-use crate::raster::{FaceVjp, Fragments, RunVjp};
+use crate::raster::{FaceVjp, Fragments, PixelCursor, RunVjp};
 use crate::scatter::{scatter_vertex_rows, IndexMap};
 
 /// Fragments per parallel chunk.
@@ -172,29 +172,17 @@ fn chunk_sums<T: Real, const C: usize>(
 ) -> ChunkSums {
     let c = if C > 0 { C } else { inp.c };
     let fr = inp.frags;
-    let (wf, hf) = (fr.width as f64, fr.height as f64);
     sc.clear();
     // The face of the previous fragment and its entry: runs of one face skip the map.
     let mut cur: Option<(u32, usize)> = None;
-    // Pixel centres in NDC: `x = (col + 0.5) sx - 1`, `y = 1 - (row + 0.5) sy`.
-    let (sx, sy) = (2.0 / wf, 2.0 / hf);
-    let mut p = fr.pixel_of(i0);
-    let (mut row, mut col) = (p / fr.width, p % fr.width);
-    let mut py = 1.0 - (row as f64 + 0.5) * sy;
+    let mut px_at = PixelCursor::new(fr, i0);
     // `dL/dI` of the current pixel in `f64`.
     let mut gpf = vec![0.0f64; c];
     // The next replaced pixel at or after `p`.
-    let mut ov = inp.over_pix.partition_point(|&q| (q as usize) < p);
+    let mut ov = inp.over_pix.partition_point(|&q| (q as usize) < px_at.p);
     for i in i0..i1 {
-        while fr.offsets[p + 1] as usize <= i {
-            p += 1;
-            col += 1;
-            if col == fr.width {
-                col = 0;
-                row += 1;
-                py = 1.0 - (row as f64 + 0.5) * sy;
-            }
-        }
+        px_at.advance(&fr.offsets, i);
+        let p = px_at.p;
         if fr.offsets[p] as usize != i {
             // Not the pixel's nearest fragment: the render does not show it.
             continue;
@@ -257,7 +245,7 @@ fn chunk_sums<T: Real, const C: usize>(
                     }
                 }
             }
-            let px = [(col as f64 + 0.5) * sx - 1.0, py];
+            let px = px_at.ndc();
             sc.fv[e].accumulate(&mut sc.acc[e], px, gb, inp.persp);
         }
     }

@@ -60,6 +60,57 @@ pub struct Fragment<T> {
     pub dbary_dy: Option<[T; 3]>,
 }
 
+/// Walks the pixels of a run of fragments in order: the pixel `p` of the current fragment,
+/// its row and column, and its centre in NDC (`x = (col + 0.5) sx - 1`, `y = 1 - (row + 0.5)
+/// sy`, the conventions' pixel centres), advancing through `offsets` without divisions.
+pub(crate) struct PixelCursor {
+    pub p: usize,
+    pub col: usize,
+    row: usize,
+    width: usize,
+    sx: f64,
+    sy: f64,
+    py: f64,
+}
+
+impl PixelCursor {
+    /// A cursor on the pixel of fragment `i`.
+    pub(crate) fn new<T: Real>(f: &Fragments<T>, i: usize) -> Self {
+        let p = f.pixel_of(i);
+        let (row, col) = (p / f.width, p % f.width);
+        let sy = 2.0 / f.height as f64;
+        PixelCursor {
+            p,
+            col,
+            row,
+            width: f.width,
+            sx: 2.0 / f.width as f64,
+            sy,
+            py: 1.0 - (row as f64 + 0.5) * sy,
+        }
+    }
+
+    /// Moves to the pixel of fragment `i` (at or after the current one).
+    #[inline(always)]
+    pub(crate) fn advance(&mut self, offsets: &[u32], i: usize) {
+        while offsets[self.p + 1] as usize <= i {
+            self.p += 1;
+            self.col += 1;
+            if self.col == self.width {
+                self.col = 0;
+                self.row += 1;
+                self.py = 1.0 - (self.row as f64 + 0.5) * self.sy;
+            }
+        }
+    }
+
+    /// The current pixel's centre in NDC.
+    #[inline(always)]
+    pub(crate) fn ndc(&self) -> [f64; 2] {
+        [(self.col as f64 + 0.5) * self.sx - 1.0, self.py]
+    }
+}
+
 impl<T: Real> Fragments<T> {
     /// An image with no fragments.
     pub fn empty(width: usize, height: usize, k: usize) -> Self {

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use super::bin::{bin_faces, Bins, FaceRec};
 use super::clip::{ceil_u, floor_u, to_screen, Rect};
 use super::edge::Setup;
-use super::fragments::{assemble, Fragments, TileFrags};
+use super::fragments::{assemble, Fragments, PixelCursor, TileFrags};
 use super::{par_first_index, validate_inputs, RasterError, RasterSettings, TILE_SIZE};
 use crate::scatter::{scatter_face_corners, IndexMap};
 use crate::soft::simd::use_avx2;
@@ -608,8 +608,6 @@ pub fn rasterize_backward<T: Real>(
     const BLOCK: usize = 1 << 15;
     let mut acc = vec![[0.0f64; 4]; clip.len()];
     let depth_grads = grad_depth.is_some() || grad_view_depth.is_some();
-    // Pixel centres in NDC: `x = (col + 0.5) sx - 1`, `y = 1 - (row + 0.5) sy`.
-    let (sx, sy) = (2.0 / s.width as f64, 2.0 / s.height as f64);
     let mut start = 0;
     while start < n {
         let end = (start + BLOCK).min(n);
@@ -623,22 +621,12 @@ pub fn rasterize_backward<T: Real>(
                 let i0 = start + ci * BWD_CHUNK;
                 let i1 = (i0 + BWD_CHUNK).min(end);
                 sc.clear();
-                let mut p = frags.pixel_of(i0);
-                let (mut row, mut col) = (p / s.width, p % s.width);
-                let mut py = 1.0 - (row as f64 + 0.5) * sy;
+                let mut px_at = PixelCursor::new(frags, i0);
                 // The previous fragment's face and entry: runs of one face skip the map.
                 let mut cur = (u32::MAX, 0usize);
                 for i in i0..i1 {
-                    while frags.offsets[p + 1] as usize <= i {
-                        p += 1;
-                        col += 1;
-                        if col == s.width {
-                            col = 0;
-                            row += 1;
-                            py = 1.0 - (row as f64 + 0.5) * sy;
-                        }
-                    }
-                    let px = [(col as f64 + 0.5) * sx - 1.0, py];
+                    px_at.advance(&frags.offsets, i);
+                    let px = px_at.ndc();
                     let fi = frags.face[i];
                     if fi != cur.0 {
                         let (e, new) = sc.face_ix.index(fi);

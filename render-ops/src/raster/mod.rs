@@ -73,6 +73,7 @@ mod edge;
 mod fragments;
 mod hard;
 
+pub(crate) use fragments::PixelCursor;
 pub use fragments::{Fragment, Fragments};
 pub use hard::{rasterize, rasterize_backward};
 pub(crate) use hard::{FaceVjp, RunVjp};
