@@ -137,7 +137,8 @@ fn bench_pipeline(c: &mut Criterion) {
         )
         .unwrap();
         let col = pos.mapv(|x| 0.5 + 0.5 * x);
-        let target = ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32);
+        // Shared, not copied into each tape (as DEODR's bench reuses its target array).
+        let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
         let faces = Arc::new(mesh.faces.clone());
         // Vertex colours need no barycentric derivatives.
         let s = RasterSettings {
@@ -155,7 +156,7 @@ fn bench_pipeline(c: &mut Criterion) {
                 let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s)?;
                 let img = blend_hard(interpolate(cv, &r)?, &r.fragments, &[0.0; 3])?;
                 if grad {
-                    let loss = img.sum_squared_diff(tape.constant(target.clone()));
+                    let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
                     let gr = tape.backward(loss)?;
                     Ok::<_, render_ops::error::RenderError>(gr.get(p).map(|t| t.len()))
                 } else {
@@ -197,7 +198,8 @@ fn bench_approx(c: &mut Criterion, group: &str, method: ApproxFn) {
         )
         .unwrap();
         let col = pos.mapv(|x| 0.5 + 0.5 * x);
-        let target = ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32);
+        // Shared, not copied into each tape (as DEODR's bench reuses its target array).
+        let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
         let faces = Arc::new(mesh.faces.clone());
         let mut s = render_ops::approx::ApproxSettings::new(size, size);
         s.cull_backfaces = true;
@@ -212,7 +214,7 @@ fn bench_approx(c: &mut Criterion, group: &str, method: ApproxFn) {
                 let cv = tape.var(col.clone(), grad);
                 let img = method(to_clip(p, &m), cv, faces.clone(), &s)?;
                 if grad {
-                    let loss = img.sum_squared_diff(tape.constant(target.clone()));
+                    let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
                     let gr = tape.backward(loss)?;
                     Ok::<_, render_ops::error::RenderError>(gr.get(p).map(|t| t.len()))
                 } else {

@@ -7,7 +7,7 @@
 //! valgrind --tool=callgrind target/release/examples/prof_hard SIZE ITERS [SUBDIV]
 //! ```
 //!
-//! `SUBDIV` 4 (default) is the 5k-face sphere. `GRAD=1` adds the backward of
+//! `SUBDIV` 4 (default) is the 5k-face sphere. `THREADS=N` sets the pool size (default 1). `GRAD=1` adds the backward of
 //! `sum((image - 0.25)^2)` to positions and colours (`render_hard_f32/forward_backward`), and
 //! the checksum then sums the gradients. `METHOD=deodr` renders with `render_ops::approx::deodr`
 //! instead (DEODR's settings, as `benches/raster.rs`'s `deodr_f32`). Prints ms per iteration and a checksum of the
@@ -64,9 +64,10 @@ fn main() {
     approx.cull_backfaces = true;
     approx.perspective_correct = false;
     approx.background = vec![0.0; 3];
-    let target = ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32);
+    // Shared, not copied into each tape (as DEODR's bench reuses its target array).
+        let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
+        .num_threads(std::env::var("THREADS").map_or(1, |t| t.parse().unwrap()))
         .build()
         .unwrap();
     let mut acc = 0.0f64;
@@ -84,7 +85,7 @@ fn main() {
                 blend_hard(interpolate(cv, &r).unwrap(), &r.fragments, &[0.0; 3]).unwrap()
             };
             if grad {
-                let loss = img.sum_squared_diff(tape.constant(target.clone()));
+                let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
                 let g = tape.backward(loss).unwrap();
                 for v in [p, cv] {
                     acc += g.get(v).unwrap().iter().map(|&x| x as f64).sum::<f64>();
