@@ -254,9 +254,17 @@ fn interpolate_rows<T: Real, const C: usize>(
             .for_each(|(blk, chunk)| {
                 let i0 = blk * ROWS_PER_TASK;
                 let rows = chunk.iter_mut().zip(&b3[i0..]).zip(&frag_face[i0..]);
+                // The corner rows of the current face: runs of fragments of one face (a row's
+                // pixels of a triangle) look them up once.
+                let mut cur = u32::MAX;
+                let zero = [T::zero(); C];
+                let (mut a0, mut a1, mut a2) = (&zero, &zero, &zero);
                 for ((o, bi), &fi) in rows {
-                    let f = faces[fi as usize];
-                    let (a0, a1, a2) = (&a[f[0] as usize], &a[f[1] as usize], &a[f[2] as usize]);
+                    if fi != cur {
+                        let f = faces[fi as usize];
+                        (a0, a1, a2) = (&a[f[0] as usize], &a[f[1] as usize], &a[f[2] as usize]);
+                        cur = fi;
+                    }
                     for ch in 0..C {
                         o[ch].write(bi[0] * a0[ch] + bi[1] * a1[ch] + bi[2] * a2[ch]);
                     }

@@ -433,16 +433,20 @@ impl Touched {
             }
         }
         self.unmark();
-        let vals = if self.keep {
-            self.vals.clear();
-            std::mem::take(&mut self.orig)
-        } else {
-            std::mem::take(&mut self.vals)
+        // Exact-size copies: the buffers stay with the scratch for the next row (handing them
+        // over would regrow them from empty on every row).
+        let out = RowPixels {
+            xs: self.xs.clone(),
+            vals: if self.keep {
+                self.orig.clone()
+            } else {
+                self.vals.clone()
+            },
         };
-        RowPixels {
-            xs: std::mem::take(&mut self.xs),
-            vals,
-        }
+        self.xs.clear();
+        self.vals.clear();
+        self.orig.clear();
+        out
     }
 
     /// Forgets the copies, keeping the buffers for the next row.
@@ -600,7 +604,13 @@ impl<T: Real> DeodrOp<T> {
             layers.push(l);
         });
         hard.reset();
-        let mut out = RowGrad::default();
+        // At most two entries per layer: sized once, no regrowth.
+        let n = 2 * layers.len();
+        let mut out = RowGrad {
+            pos: Vec::with_capacity(n),
+            attr_vertex: Vec::with_capacity(n),
+            attr_grad: Vec::with_capacity(n * c),
+        };
         let rf = row as f64;
         let mut ga = vec![0.0; c];
         for l in layers.iter().rev() {

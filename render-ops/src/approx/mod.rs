@@ -62,7 +62,7 @@ use rayon::prelude::*;
 
 use crate::error::RenderError;
 use crate::raster::{Fragments, RasterSettings};
-use crate::rasterize::clip_rows;
+use crate::rasterize::{as_arrays, as_arrays_mut, clip_rows};
 use crate::soft::common::ndc_to_clip;
 use hard_grad::HardGrad;
 
@@ -221,9 +221,9 @@ pub(crate) fn render_hard<T: Real>(
     let mut img = Vec::with_capacity(n);
     let out = &mut img.spare_capacity_mut()[..n];
     match c {
-        3 => render_hard_rows::<T, 3>(frags, faces, bg, a, out),
-        1 => render_hard_rows::<T, 1>(frags, faces, bg, a, out),
-        _ => render_hard_rows::<T, 0>(frags, faces, bg, a, out),
+        3 => render_hard_rows::<T, 3, 4>(frags, faces, bg, a, out),
+        1 => render_hard_rows::<T, 1, 2>(frags, faces, bg, a, out),
+        _ => render_hard_rows::<T, 0, 1>(frags, faces, bg, a, out),
     }
     // SAFETY: `render_hard_rows` wrote all `n` values.
     unsafe { img.set_len(n) };
@@ -231,16 +231,52 @@ pub(crate) fn render_hard<T: Real>(
 }
 
 /// The rows of [`render_hard`], for `C` channels (`C = 0`: `bg.len()`, known only at run
-/// time), in parallel over image rows, writing every value of the (uninitialised) image.
-fn render_hard_rows<T: Real, const C: usize>(
+/// time; `P = C + 1` pixel values), in parallel over image rows, writing every value of the
+/// (uninitialised) image. With `C > 0` a row starts as a copy of a background row and the
+/// covered pixels are then written, each run of one face's fragments looking its corner
+/// attributes up once.
+fn render_hard_rows<T: Real, const C: usize, const P: usize>(
     frags: &Fragments<T>,
     faces: &[[u32; 3]],
     bg: &[T],
     a: &[T],
     img: &mut [MaybeUninit<T>],
 ) {
-    let c = if C > 0 { C } else { bg.len() };
     let w = frags.width;
+    if C > 0 {
+        debug_assert_eq!(P, C + 1);
+        let a = as_arrays::<T, C>(a);
+        let mut empty = [T::zero(); P];
+        empty[..C].copy_from_slice(bg);
+        let empty_row = vec![empty.map(MaybeUninit::new); w];
+        let pixels = as_arrays_mut::<MaybeUninit<T>, P>(img);
+        pixels.par_chunks_mut(w).enumerate().for_each(|(row, out)| {
+            let offs = &frags.offsets[row * w..=(row + 1) * w];
+            out.copy_from_slice(&empty_row);
+            let zero = [T::zero(); C];
+            let (mut cur, mut a0, mut a1, mut a2) = (u32::MAX, &zero, &zero, &zero);
+            let mut s = offs[0] as usize;
+            for (px, &e) in out.iter_mut().zip(&offs[1..]) {
+                let e = e as usize;
+                if s < e {
+                    let fi = frags.face[s];
+                    if fi != cur {
+                        let f = faces[fi as usize];
+                        (a0, a1, a2) = (&a[f[0] as usize], &a[f[1] as usize], &a[f[2] as usize]);
+                        cur = fi;
+                    }
+                    let b = frags.bary[s];
+                    for ch in 0..C {
+                        px[ch] = MaybeUninit::new(b[0] * a0[ch] + b[1] * a1[ch] + b[2] * a2[ch]);
+                    }
+                    px[C] = MaybeUninit::new(T::one());
+                }
+                s = e;
+            }
+        });
+        return;
+    }
+    let c = bg.len();
     img.par_chunks_mut(w * (c + 1))
         .enumerate()
         .for_each(|(row, out)| {
