@@ -397,14 +397,24 @@ unsafe fn z_test_rows_k1(
     sc: &mut Scratch,
     li: u32,
 ) {
+    use std::arch::x86_64::*;
     let sv = SpanVecs::new(spans);
+    // The row parts `b_i row + c_i` and `dz_1 row + dz_2` are made in vector registers from
+    // broadcasts (the same products and sums as `Setup::row`): scalar results spilled to
+    // the stack and reloaded as vectors stall store-to-load forwarding.
+    let (b, c) = (
+        st.b.map(|x| _mm256_set1_pd(x)),
+        st.c.map(|x| _mm256_set1_pd(x)),
+    );
+    let (dz1, dz2) = (_mm256_set1_pd(dz[1]), _mm256_set1_pd(dz[2]));
     for row in spans.rows.clone() {
         let Some((cl, cr)) = spans.row_avx2(&sv, row) else {
             continue;
         };
         let rf = row as f64;
-        let tr = st.row(rf);
-        let dr = dz[1] * rf + dz[2];
+        let rv = _mm256_set1_pd(rf);
+        let t = [0, 1, 2].map(|i| _mm256_add_pd(_mm256_mul_pd(b[i], rv), c[i]));
+        let drv = _mm256_add_pd(_mm256_mul_pd(dz1, rv), dz2);
         let lr = (row - rect.r0) as usize;
         sc.touch(lr, cl - rect.c0, cr - rect.c0);
         let first = lr * TILE_SIZE + (cl - rect.c0) as usize;
@@ -415,8 +425,8 @@ unsafe fn z_test_rows_k1(
         let (filled, ambiguous) = unsafe {
             z_test_span_k1(
                 st,
-                &tr,
-                dr,
+                &t,
+                drv,
                 dz[0],
                 cl,
                 n,
@@ -429,6 +439,7 @@ unsafe fn z_test_rows_k1(
         if ambiguous {
             // The pixels the filter could not settle, exactly (rare: pixels within a few
             // ulps of an edge); the others were settled above.
+            let (tr, dr) = (st.row(rf), dz[1] * rf + dz[2]);
             for (j, col) in (cl..cr + 1).enumerate() {
                 if ambiguous_pixel(st, &st.eval(col as f64, &tr)) {
                     let p = first + j;
@@ -452,8 +463,8 @@ fn ambiguous_pixel(st: &Setup, e: &[f64; 3]) -> bool {
 /// Pixels [`z_test_span_k1`] tests together.
 pub(crate) const SPAN_LANES: usize = 4;
 
-/// [`test_pixel`] for `K = 1` over the `n` pixels `c0..c0 + n` of one row (row part `tr` of
-/// the edge functions, depth plane `dza col + dr`; K-buffer slots `depth` and `idx`, one per
+/// [`test_pixel`] for `K = 1` over the `n` pixels `c0..c0 + n` of one row (row part `t` of
+/// the edge functions and `dr` of the depth plane `dza col + dr`, broadcast; K-buffer slots `depth` and `idx`, one per
 /// pixel) with AVX2, [`SPAN_LANES`] pixels at a time, for the pixels the filter settles. The
 /// slices must hold `n` rounded up to a multiple of [`SPAN_LANES`] slots; lanes past `n` store
 /// back what they read. Returns the number of slots filled for the first time and whether some
@@ -468,8 +479,8 @@ pub(crate) const SPAN_LANES: usize = 4;
 #[allow(clippy::too_many_arguments)]
 unsafe fn z_test_span_k1(
     st: &Setup,
-    tr: &[f64; 3],
-    dr: f64,
+    t: &[std::arch::x86_64::__m256d; 3],
+    dr: std::arch::x86_64::__m256d,
     dza: f64,
     c0: u32,
     n: usize,
@@ -481,10 +492,9 @@ unsafe fn z_test_span_k1(
     let groups = n.div_ceil(SPAN_LANES);
     assert!(depth.len() >= groups * SPAN_LANES && idx.len() >= groups * SPAN_LANES);
     let a = st.a.map(|x| _mm256_set1_pd(x));
-    let t = tr.map(|x| _mm256_set1_pd(x));
     let hi = st.bnd.map(|x| _mm256_set1_pd(x));
     let lo = st.bnd.map(|x| _mm256_set1_pd(-x));
-    let (dza, dr) = (_mm256_set1_pd(dza), _mm256_set1_pd(dr));
+    let dza = _mm256_set1_pd(dza);
     let (one, m_one, zero) = (
         _mm256_set1_pd(1.0),
         _mm256_set1_pd(-1.0),
