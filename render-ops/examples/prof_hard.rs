@@ -65,7 +65,7 @@ fn main() {
     approx.perspective_correct = false;
     approx.background = vec![0.0; 3];
     // Shared, not copied into each tape (as DEODR's bench reuses its target array).
-        let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
+    let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(std::env::var("THREADS").map_or(1, |t| t.parse().unwrap()))
         .build()
