@@ -107,7 +107,9 @@ impl PixelCursor {
     /// The current pixel's centre in NDC.
     #[inline(always)]
     pub(crate) fn ndc(&self) -> [f64; 2] {
-        [(self.col as f64 + 0.5) * self.sx - 1.0, self.py]
+        // Through `i64` (the same value: columns are far below 2^63), one signed conversion
+        // instead of the longer unsigned one.
+        [(self.col as i64 as f64 + 0.5) * self.sx - 1.0, self.py]
     }
 }
 

@@ -817,6 +817,41 @@ pub(crate) struct RunVjp {
     k: [[f64; 3]; 3],
 }
 
+/// The part of a [`FaceVjp`] that the per-fragment [`FaceVjp::accumulate`] reads (the cofactor
+/// columns and `1 / det`), small enough to copy into locals for a run of fragments
+/// ([`FaceVjp::run_setup`]).
+#[derive(Clone, Copy)]
+pub(crate) struct RunSetup {
+    c: [[f64; 3]; 3],
+    inv_det: f64,
+}
+
+impl RunSetup {
+    /// Adds the factors of one fragment at NDC pixel `px` with `dL/dbary = gb` (no depth
+    /// gradients) to the run's sum `acc` ([`RunVjp`]).
+    #[inline(always)]
+    pub(crate) fn accumulate(&self, acc: &mut RunVjp, px: [f64; 2], gb: [f64; 3], persp: bool) {
+        let c = &self.c;
+        let u = [0, 1, 2].map(|i| (c[i][0] * px[0] + c[i][1] * px[1] + c[i][2]) * self.inv_det);
+        if persp {
+            let w_frag = 1.0 / (u[0] + u[1] + u[2]);
+            let b = u.map(|x| x * w_frag);
+            let s = dot(gb, b);
+            for m in 0..3 {
+                for i in 0..3 {
+                    acc.k[m][i] += b[m] * (s - gb[i]);
+                }
+            }
+        } else {
+            for m in 0..3 {
+                for i in 0..3 {
+                    acc.k[m][i] += u[m] * gb[i];
+                }
+            }
+        }
+    }
+}
+
 impl FaceVjp {
     /// The per-face setup from the clip coordinates of its three vertices.
     pub(crate) fn new(v: &[[f64; 4]; 3]) -> Self {
@@ -865,26 +900,18 @@ impl FaceVjp {
     }
 
     /// Adds the factors of one fragment at NDC pixel `px` with `dL/dbary = gb` (no depth
-    /// gradients) to the run's sum `acc` ([`RunVjp`]).
+    /// gradients) to the run's sum `acc` ([`RunVjp`]): [`RunSetup::accumulate`].
     #[inline(always)]
     pub(crate) fn accumulate(&self, acc: &mut RunVjp, px: [f64; 2], gb: [f64; 3], persp: bool) {
-        let c = &self.c;
-        let u = [0, 1, 2].map(|i| (c[i][0] * px[0] + c[i][1] * px[1] + c[i][2]) * self.inv_det);
-        if persp {
-            let w_frag = 1.0 / (u[0] + u[1] + u[2]);
-            let b = u.map(|x| x * w_frag);
-            let s = dot(gb, b);
-            for m in 0..3 {
-                for i in 0..3 {
-                    acc.k[m][i] += b[m] * (s - gb[i]);
-                }
-            }
-        } else {
-            for m in 0..3 {
-                for i in 0..3 {
-                    acc.k[m][i] += u[m] * gb[i];
-                }
-            }
+        self.run_setup().accumulate(acc, px, gb, persp);
+    }
+
+    /// What [`FaceVjp::accumulate`] reads, as a small copy.
+    #[inline(always)]
+    pub(crate) fn run_setup(&self) -> RunSetup {
+        RunSetup {
+            c: self.c,
+            inv_det: self.inv_det,
         }
     }
 

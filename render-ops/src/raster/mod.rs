@@ -76,7 +76,7 @@ mod hard;
 pub(crate) use fragments::PixelCursor;
 pub use fragments::{Fragment, Fragments};
 pub use hard::{rasterize, rasterize_backward};
-pub(crate) use hard::{FaceVjp, RunVjp};
+pub(crate) use hard::{FaceVjp, RunSetup, RunVjp};
 
 /// Side of the square screen tiles that faces are binned into and that are rasterized in parallel.
 pub const TILE_SIZE: usize = 32;
