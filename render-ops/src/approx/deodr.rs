@@ -205,7 +205,7 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
     // their order here does not matter.
     let nv = screen.px.len();
     let listed = kind.iter().filter(|&&k| k != Kind::Other).count();
-    let blocks = rayon::current_num_threads().min(nv / 4096).max(1);
+    let blocks = rayon::current_num_threads().min(nv / 1024).max(1);
     let per = nv.div_ceil(blocks).max(1);
     let mut sil: Vec<(f64, u32)> = (0..blocks)
         .into_par_iter()
@@ -371,6 +371,25 @@ struct Touched {
 struct RowPixels {
     xs: Vec<u32>,
     vals: Vec<f64>,
+}
+
+impl RowPixels {
+    /// The same pixels in increasing column order (`c1` values each).
+    fn sorted(self, c1: usize) -> Self {
+        if self.xs.is_sorted() {
+            return self;
+        }
+        let mut order: Vec<usize> = (0..self.xs.len()).collect();
+        order.sort_unstable_by_key(|&k| self.xs[k]);
+        RowPixels {
+            xs: order.iter().map(|&k| self.xs[k]).collect(),
+            vals: order
+                .iter()
+                .flat_map(|&k| &self.vals[k * c1..(k + 1) * c1])
+                .copied()
+                .collect(),
+        }
+    }
 }
 
 impl Touched {
@@ -674,7 +693,7 @@ impl<T: Real> DeodrOp<T> {
             out.pos
                 .push((e.v[1], [g1[0], g1[1], -gq1 * e.q[1] * e.q[1]]));
         }
-        (out, grad.finish::<T>(None))
+        (out, grad.finish::<T>(None).sorted(c + 1))
     }
 }
 
@@ -748,15 +767,13 @@ impl<T: Real> Op<T> for DeodrOp<T> {
                 },
             )
             .collect();
-        // The touched pixels' dL/dI_hard in pixel order.
-        let (mut ov_pix, mut ov_val) = (Vec::new(), Vec::new());
+        // The touched pixels' dL/dI_hard in pixel order (each row's already sorted).
+        let n_ov: usize = rows.iter().map(|(_, px)| px.xs.len()).sum();
+        let (mut ov_pix, mut ov_val) =
+            (Vec::with_capacity(n_ov), Vec::with_capacity(n_ov * (c + 1)));
         for (row, (_, px)) in rows.iter().enumerate() {
-            let mut order: Vec<usize> = (0..px.xs.len()).collect();
-            order.sort_unstable_by_key(|&k| px.xs[k]);
-            for k in order {
-                ov_pix.push((row * w + px.xs[k] as usize) as u32);
-                ov_val.extend_from_slice(&px.vals[k * (c + 1)..(k + 1) * (c + 1)]);
-            }
+            ov_pix.extend(px.xs.iter().map(|&x| (row * w + x as usize) as u32));
+            ov_val.extend_from_slice(&px.vals);
         }
         let contrib: Vec<RowGrad> = rows.into_iter().map(|(r, _)| r).collect();
         let hg = hard_render_grad(
