@@ -72,29 +72,34 @@ fn main() {
         .unwrap();
     let mut acc = 0.0f64;
     let t0 = std::time::Instant::now();
-    for _ in 0..iters {
-        pool.install(|| {
-            let tape = Tape::<f32>::new();
-            let p = tape.var(pos.clone(), grad);
-            let cv = tape.var(col.clone(), grad);
-            let img = if deodr {
-                render_ops::approx::deodr(to_clip(p, &m), cv, faces.clone(), &approx).unwrap()
-            } else {
-                let r =
-                    render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s).unwrap();
-                blend_hard(interpolate(cv, &r).unwrap(), &r.fragments, &[0.0; 3]).unwrap()
-            };
-            if grad {
-                let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
-                let g = tape.backward(loss).unwrap();
-                for v in [p, cv] {
-                    acc += g.get(v).unwrap().iter().map(|&x| x as f64).sum::<f64>();
-                }
-            } else {
-                let im = img.value().unwrap();
-                acc += im.iter().map(|&x| x as f64).sum::<f64>();
+    // `ONCE=1`: one `install` around the whole loop (as an application's loop runs inside
+    // its pool), instead of one per iteration (as criterion's `b.iter(|| pool.install(..))`).
+    let once = std::env::var("ONCE").is_ok_and(|v| v == "1");
+    let mut frame = || {
+        let tape = Tape::<f32>::new();
+        let p = tape.var(pos.clone(), grad);
+        let cv = tape.var(col.clone(), grad);
+        let img = if deodr {
+            render_ops::approx::deodr(to_clip(p, &m), cv, faces.clone(), &approx).unwrap()
+        } else {
+            let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s).unwrap();
+            blend_hard(interpolate(cv, &r).unwrap(), &r.fragments, &[0.0; 3]).unwrap()
+        };
+        if grad {
+            let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
+            let g = tape.backward(loss).unwrap();
+            for v in [p, cv] {
+                acc += g.get(v).unwrap().iter().map(|&x| x as f64).sum::<f64>();
             }
-        });
+        } else {
+            let im = img.value().unwrap();
+            acc += im.iter().map(|&x| x as f64).sum::<f64>();
+        }
+    };
+    if once {
+        pool.install(|| (0..iters).for_each(|_| frame()));
+    } else {
+        (0..iters).for_each(|_| pool.install(&mut frame));
     }
     eprintln!(
         "{:.3} ms/iter checksum {acc:.6}",

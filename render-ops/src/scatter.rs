@@ -89,7 +89,10 @@ pub(crate) fn scatter_vertex_rows<'a, I>(
 }
 
 /// A map from `u32` keys (below `u32::MAX`) to dense indices `0, 1, ..` in order of insertion
-/// (open addressing), cleared in time proportional to its length.
+/// (open addressing, kept at most half full: the table doubles when it would fill beyond),
+/// cleared in time proportional to its length. Per-chunk scratch starts small, so that making
+/// one (once per parallel task) costs little next to the chunk's work, and keeps its size
+/// across the chunks of its task.
 pub(crate) struct IndexMap {
     /// `(key, index)` per slot, `key == u32::MAX` where empty.
     slots: Vec<(u32, u32)>,
@@ -100,12 +103,12 @@ pub(crate) struct IndexMap {
 }
 
 impl IndexMap {
-    /// A map for at most `max_len` keys (kept at most half full).
-    pub(crate) fn new(max_len: usize) -> Self {
-        let cap = (2 * max_len).next_power_of_two().max(16);
+    /// A map with room for `len` keys before it first grows.
+    pub(crate) fn new(len: usize) -> Self {
+        let cap = (2 * len).next_power_of_two().max(16);
         IndexMap {
             slots: vec![(u32::MAX, 0); cap],
-            used: Vec::with_capacity(max_len),
+            used: Vec::with_capacity(len),
             shift: 32 - cap.trailing_zeros(),
         }
     }
@@ -113,7 +116,7 @@ impl IndexMap {
     /// The index of `key`, and whether it was inserted by this call (as index `len - 1`).
     #[inline]
     pub(crate) fn index(&mut self, key: u32) -> (usize, bool) {
-        debug_assert!(key != u32::MAX && self.used.len() < self.slots.len() / 2);
+        debug_assert!(key != u32::MAX);
         let mask = self.slots.len() - 1;
         let mut s = (key.wrapping_mul(0x9E37_79B9) >> self.shift) as usize;
         loop {
@@ -123,6 +126,10 @@ impl IndexMap {
             }
             if k == u32::MAX {
                 let v = self.used.len();
+                if 2 * (v + 1) > self.slots.len() {
+                    self.grow();
+                    return self.index(key);
+                }
                 self.slots[s] = (key, v as u32);
                 self.used.push(s as u32);
                 return (v, true);
@@ -131,10 +138,61 @@ impl IndexMap {
         }
     }
 
+    /// Doubles the table, re-inserting the keys with their indices in insertion order.
+    #[cold]
+    fn grow(&mut self) {
+        let entries: Vec<(u32, u32)> = self.used.iter().map(|&s| self.slots[s as usize]).collect();
+        let cap = 2 * self.slots.len();
+        self.slots.clear();
+        self.slots.resize(cap, (u32::MAX, 0));
+        self.shift = 32 - cap.trailing_zeros();
+        self.used.clear();
+        let mask = cap - 1;
+        for (key, v) in entries {
+            let mut s = (key.wrapping_mul(0x9E37_79B9) >> self.shift) as usize;
+            while self.slots[s].0 != u32::MAX {
+                s = (s + 1) & mask;
+            }
+            self.slots[s] = (key, v);
+            self.used.push(s as u32);
+        }
+    }
+
     pub(crate) fn clear(&mut self) {
         for &s in &self.used {
             self.slots[s as usize].0 = u32::MAX;
         }
         self.used.clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::IndexMap;
+
+    /// Indices follow insertion order through growth and clears; lookups find them again.
+    #[test]
+    fn index_map_keeps_insertion_order_through_growth() {
+        let mut m = IndexMap::new(4);
+        for round in 0..3u32 {
+            let keys: Vec<u32> = (0..1000u32)
+                .map(|i| i.wrapping_mul(2_654_435_761).wrapping_add(round) % 50_000)
+                .collect();
+            let mut want = Vec::new();
+            for &k in &keys {
+                let (i, new) = m.index(k);
+                match want.iter().position(|&x| x == k) {
+                    Some(p) => assert_eq!((i, new), (p, false)),
+                    None => {
+                        assert_eq!((i, new), (want.len(), true));
+                        want.push(k);
+                    }
+                }
+            }
+            for (p, &k) in want.iter().enumerate() {
+                assert_eq!(m.index(k), (p, false));
+            }
+            m.clear();
+        }
     }
 }

@@ -61,13 +61,14 @@ struct Scratch {
 impl Scratch {
     fn new() -> Self {
         Scratch {
-            face_ix: IndexMap::new(CHUNK),
-            vert_ix: IndexMap::new(3 * CHUNK),
-            face: Vec::new(),
-            fv: Vec::new(),
-            acc: Vec::new(),
-            a_face: Vec::new(),
-            ga: Vec::new(),
+            // Grown as needed (a chunk of small faces meets a few hundred).
+            face_ix: IndexMap::new(256),
+            vert_ix: IndexMap::new(512),
+            face: Vec::with_capacity(256),
+            fv: Vec::with_capacity(256),
+            acc: Vec::with_capacity(256),
+            a_face: Vec::with_capacity(256 * 9),
+            ga: Vec::with_capacity(256 * 9),
         }
     }
 

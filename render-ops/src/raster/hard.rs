@@ -767,7 +767,7 @@ struct BwdScratch {
 impl BwdScratch {
     fn new() -> Self {
         BwdScratch {
-            face_ix: IndexMap::new(BWD_CHUNK),
+            face_ix: IndexMap::new(256),
             out: Vec::new(),
             fv: Vec::new(),
             acc: Vec::new(),
