@@ -72,6 +72,30 @@ impl Scratch {
         }
     }
 
+    /// The entry of face `fi` (`c` channels), made (zeroed sums, its setup and attributes)
+    /// at its first fragment in the chunk.
+    #[inline(always)]
+    fn entry<T: Real>(&mut self, inp: &Inputs<'_, T>, fi: u32, c: usize) -> usize {
+        let (e, new) = self.face_ix.index(fi);
+        if new {
+            let f = inp.faces[fi as usize];
+            let v = f.map(|vi| inp.clip[vi as usize].map(|x| x.to_f64c()));
+            self.face.push(fi);
+            self.fv.push(FaceVjp::new(&v));
+            self.acc.push(RunVjp::default());
+            if inp.need_pos {
+                for vi in f {
+                    let a = &inp.attrs[vi as usize * c..][..c];
+                    self.a_face.extend(a.iter().map(|x| x.to_f64c()));
+                }
+            }
+            if inp.need_attr {
+                self.ga.resize(self.ga.len() + 3 * c, 0.0);
+            }
+        }
+        e
+    }
+
     fn clear(&mut self) {
         self.face_ix.clear();
         self.vert_ix.clear();
@@ -211,23 +235,7 @@ impl<const C: usize> OpenFace<C> {
     #[inline(never)]
     fn switch<T: Real>(&mut self, inp: &Inputs<'_, T>, sc: &mut Scratch, fi: u32) {
         self.close(inp, sc);
-        let (e, new) = sc.face_ix.index(fi);
-        if new {
-            let f = inp.faces[fi as usize];
-            let v = f.map(|vi| inp.clip[vi as usize].map(|x| x.to_f64c()));
-            sc.face.push(fi);
-            sc.fv.push(FaceVjp::new(&v));
-            sc.acc.push(RunVjp::default());
-            if inp.need_pos {
-                for vi in f {
-                    let a = &inp.attrs[vi as usize * C..][..C];
-                    sc.a_face.extend(a.iter().map(|x| x.to_f64c()));
-                }
-            }
-            if inp.need_attr {
-                sc.ga.resize(sc.ga.len() + 3 * C, 0.0);
-            }
-        }
+        let e = sc.entry(inp, fi, C);
         self.face = fi;
         self.e = e;
         self.fv = sc.fv[e].run_setup();
@@ -378,26 +386,7 @@ fn chunk_sums_dyn<T: Real>(
         let e = match cur {
             Some((cf, e)) if cf == fi => e,
             _ => {
-                let (e, new) = sc.face_ix.index(fi);
-                if new {
-                    let f = inp.faces[fi as usize];
-                    let v = f.map(|vi| inp.clip[vi as usize].map(|x| x.to_f64c()));
-                    sc.face.push(fi);
-                    sc.fv.push(FaceVjp::new(&v));
-                    sc.acc.push(RunVjp::default());
-                    if inp.need_pos {
-                        for vi in f {
-                            sc.a_face.extend(
-                                inp.attrs[vi as usize * c..][..c]
-                                    .iter()
-                                    .map(|x| x.to_f64c()),
-                            );
-                        }
-                    }
-                    if inp.need_attr {
-                        sc.ga.resize(sc.ga.len() + 3 * c, 0.0);
-                    }
-                }
+                let e = sc.entry(inp, fi, c);
                 cur = Some((fi, e));
                 e
             }
