@@ -13,33 +13,19 @@
 //! cargo bench -p tapestry-render-ops --bench raster -- --warm-up-time 1 --measurement-time 3
 //! ```
 
+mod common;
+
 use std::sync::Arc;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
+use common::{peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use render_ops::blend::blend_hard;
-use render_ops::camera::Camera;
 use render_ops::interpolate::interpolate;
 use render_ops::mesh::Mesh;
 use render_ops::raster::{rasterize, rasterize_backward, RasterSettings};
 use render_ops::transform::to_clip;
-
-/// The peers' camera: view-projection matrix (row-major).
-fn peers_view_proj() -> [[f64; 4]; 4] {
-    let fov = 2.0 * (0.5f64 / 1.1).atan();
-    Camera::perspective_look_at(
-        [0.0, 0.0, -3.0],
-        [0.0; 3],
-        [0.0, -1.0, 0.0],
-        fov,
-        1.0,
-        1.0,
-        100.0,
-    )
-    .expect("valid camera")
-    .view_proj()
-}
 
 /// Clip-space positions and faces of the unit icosphere with `subdiv` subdivisions under the
 /// peers' camera.
@@ -58,13 +44,6 @@ fn scene(subdiv: u32) -> (Vec<[f32; 4]>, Vec<[u32; 3]>) {
         })
         .collect();
     (clip, mesh.faces)
-}
-
-fn pool(threads: usize) -> rayon::ThreadPool {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .expect("thread pool")
 }
 
 fn bench_forward(c: &mut Criterion) {
@@ -129,17 +108,9 @@ fn bench_pipeline(c: &mut Criterion) {
     g.sample_size(20);
     let m = peers_view_proj();
     for (subdiv, size) in [(4u32, 256usize), (4, 512), (6, 256), (6, 512)] {
-        let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
-        let v = mesh.positions.len();
-        let pos = ArrayD::from_shape_vec(
-            IxDyn(&[v, 3]),
-            mesh.positions.iter().flatten().copied().collect(),
-        )
-        .unwrap();
-        let col = pos.mapv(|x| 0.5 + 0.5 * x);
+        let PeerScene { pos, col, faces } = peer_scene(subdiv);
         // Shared, not copied into each tape (as DEODR's bench reuses its target array).
         let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
-        let faces = Arc::new(mesh.faces.clone());
         // Vertex colours need no barycentric derivatives.
         let s = RasterSettings {
             cull_backfaces: true,
@@ -148,7 +119,7 @@ fn bench_pipeline(c: &mut Criterion) {
         };
         for threads in [1, 2] {
             let pool = pool(threads);
-            let id = format!("{}k_faces/{size}px/{threads}thr", mesh.faces.len() / 1000);
+            let id = format!("{}k_faces/{size}px/{threads}thr", faces.len() / 1000);
             let run = |grad: bool| {
                 let tape = Tape::<f32>::new();
                 let p = tape.var(pos.clone(), grad);
@@ -190,24 +161,16 @@ fn bench_approx(c: &mut Criterion, group: &str, method: ApproxFn) {
     g.sample_size(20);
     let m = peers_view_proj();
     for (subdiv, size) in [(4u32, 256usize), (4, 512), (6, 256), (6, 512)] {
-        let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
-        let v = mesh.positions.len();
-        let pos = ArrayD::from_shape_vec(
-            IxDyn(&[v, 3]),
-            mesh.positions.iter().flatten().copied().collect(),
-        )
-        .unwrap();
-        let col = pos.mapv(|x| 0.5 + 0.5 * x);
+        let PeerScene { pos, col, faces } = peer_scene(subdiv);
         // Shared, not copied into each tape (as DEODR's bench reuses its target array).
         let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
-        let faces = Arc::new(mesh.faces.clone());
         let mut s = render_ops::approx::ApproxSettings::new(size, size);
         s.cull_backfaces = true;
         s.perspective_correct = false;
         s.background = vec![0.0; 3];
         for threads in [1, 2] {
             let pool = pool(threads);
-            let id = format!("{}k_faces/{size}px/{threads}thr", mesh.faces.len() / 1000);
+            let id = format!("{}k_faces/{size}px/{threads}thr", faces.len() / 1000);
             let run = |grad: bool| {
                 let tape = Tape::<f32>::new();
                 let p = tape.var(pos.clone(), grad);

@@ -9,60 +9,14 @@
 //! cargo bench -p tapestry-render-ops --bench soft -- --warm-up-time 1 --measurement-time 3
 //! ```
 
-use std::sync::Arc;
+mod common;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
-use autodiff::{Tape, Tensor};
+use autodiff::Tape;
+use common::{peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use render_ops::camera::Camera;
-use render_ops::mesh::Mesh;
 use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
 use render_ops::transform::to_clip;
-
-/// The peers' camera: view-projection matrix (row-major).
-fn peers_view_proj() -> [[f64; 4]; 4] {
-    let fov = 2.0 * (0.5f64 / 1.1).atan();
-    Camera::perspective_look_at(
-        [0.0, 0.0, -3.0],
-        [0.0; 3],
-        [0.0, -1.0, 0.0],
-        fov,
-        1.0,
-        1.0,
-        100.0,
-    )
-    .expect("valid camera")
-    .view_proj()
-}
-
-struct Scene {
-    faces: Arc<Vec<[u32; 3]>>,
-    pos: Tensor<f32>,
-    col: Tensor<f32>,
-}
-
-fn scene(subdiv: u32) -> Scene {
-    let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
-    let v = mesh.positions.len();
-    let pos = ArrayD::from_shape_vec(
-        IxDyn(&[v, 3]),
-        mesh.positions.iter().flatten().copied().collect(),
-    )
-    .unwrap();
-    let col = pos.mapv(|x| 0.5 + 0.5 * x);
-    Scene {
-        faces: Arc::new(mesh.faces.clone()),
-        pos,
-        col,
-    }
-}
-
-fn pool(threads: usize) -> rayon::ThreadPool {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .expect("thread pool")
-}
 
 #[derive(Clone, Copy)]
 enum Method {
@@ -71,7 +25,7 @@ enum Method {
 }
 
 /// Renders (and optionally back-propagates) one frame; returns a value so the work is kept.
-fn run(sc: &Scene, size: usize, method: Method, grad: bool) -> usize {
+fn run(sc: &PeerScene, size: usize, method: Method, grad: bool) -> usize {
     let m = peers_view_proj();
     let tape = Tape::<f32>::new();
     let p = tape.var(sc.pos.clone(), grad);
@@ -101,7 +55,7 @@ fn bench_soft(c: &mut Criterion) {
     let threads = 2;
     let pool = pool(threads);
     for subdiv in [4u32, 6] {
-        let sc = scene(subdiv);
+        let sc = peer_scene(subdiv);
         for size in [256usize, 512] {
             let mut methods = vec![
                 ("softras_sigma1e-3", Method::SoftRas(1e-3)),

@@ -7,21 +7,24 @@
 //! valgrind --tool=callgrind target/release/examples/prof_hard SIZE ITERS [SUBDIV]
 //! ```
 //!
-//! `SUBDIV` 4 (default) is the 5k-face sphere. `THREADS=N` sets the pool size (default 1). `GRAD=1` adds the backward of
+//! `SUBDIV` 4 (default) is the 5k-face sphere. `THREADS=N` sets the pool size (default 1).
+//! `GRAD=1` adds the backward of
 //! `sum((image - 0.25)^2)` to positions and colours (`render_hard_f32/forward_backward`), and
 //! the checksum then sums the gradients. `METHOD=deodr` renders with `render_ops::approx::deodr`
 //! instead (DEODR's settings, as `benches/raster.rs`'s `deodr_f32`). Prints ms per iteration and a checksum of the
 //! images (equal checksums: equal images up to summation order). Subtract a run with
 //! `ITERS = 0` (scene setup) from the instruction counts; the checksum itself costs about
 //! 10 instructions per image value.
+#[path = "../benches/common/mod.rs"]
+mod common;
+
 use std::sync::Arc;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
+use common::{peer_scene, peers_view_proj, pool, PeerScene};
 use render_ops::blend::blend_hard;
-use render_ops::camera::Camera;
 use render_ops::interpolate::interpolate;
-use render_ops::mesh::Mesh;
 use render_ops::raster::RasterSettings;
 use render_ops::transform::to_clip;
 
@@ -30,27 +33,8 @@ fn main() {
     let size: usize = args[1].parse().unwrap();
     let iters: usize = args[2].parse().unwrap();
     let subdiv: u32 = args.get(3).map_or(4, |s| s.parse().unwrap());
-    let fov = 2.0 * (0.5f64 / 1.1).atan();
-    let m = Camera::perspective_look_at(
-        [0.0, 0.0, -3.0],
-        [0.0; 3],
-        [0.0, -1.0, 0.0],
-        fov,
-        1.0,
-        1.0,
-        100.0,
-    )
-    .unwrap()
-    .view_proj();
-    let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
-    let v = mesh.positions.len();
-    let pos = ArrayD::from_shape_vec(
-        IxDyn(&[v, 3]),
-        mesh.positions.iter().flatten().copied().collect(),
-    )
-    .unwrap();
-    let col = pos.mapv(|x| 0.5 + 0.5 * x);
-    let faces = Arc::new(mesh.faces.clone());
+    let m = peers_view_proj();
+    let PeerScene { pos, col, faces } = peer_scene(subdiv);
     let s = RasterSettings {
         cull_backfaces: true,
         // The pipeline (vertex colours, hard blend) needs no barycentric derivatives;
@@ -66,10 +50,7 @@ fn main() {
     approx.background = vec![0.0; 3];
     // Shared, not copied into each tape (as DEODR's bench reuses its target array).
     let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(std::env::var("THREADS").map_or(1, |t| t.parse().unwrap()))
-        .build()
-        .unwrap();
+    let pool = pool(std::env::var("THREADS").map_or(1, |t| t.parse().unwrap()));
     let mut acc = 0.0f64;
     let t0 = std::time::Instant::now();
     // `ONCE=1`: one `install` around the whole loop (as an application's loop runs inside

@@ -12,12 +12,12 @@
 //! iteration and checksums of the image and the gradients (equal checksums: equal results up
 //! to summation order). Subtract a run with `ITERS = 0` (scene setup) from the instruction
 //! counts.
-use std::sync::Arc;
+#[path = "../benches/common/mod.rs"]
+mod common;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
-use render_ops::camera::Camera;
-use render_ops::mesh::Mesh;
+use common::{peer_scene, peers_view_proj, pool, PeerScene};
 use render_ops::soft::{softras, SoftSettings};
 use render_ops::transform::to_clip;
 
@@ -28,34 +28,12 @@ fn main() {
     let sigma: f64 = args[3].parse().unwrap();
     let subdiv: u32 = args.get(4).map_or(4, |s| s.parse().unwrap());
     let threads: usize = args.get(5).map_or(1, |s| s.parse().unwrap());
-    let fov = 2.0 * (0.5f64 / 1.1).atan();
-    let m = Camera::perspective_look_at(
-        [0.0, 0.0, -3.0],
-        [0.0; 3],
-        [0.0, -1.0, 0.0],
-        fov,
-        1.0,
-        1.0,
-        100.0,
-    )
-    .unwrap()
-    .view_proj();
-    let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
-    let v = mesh.positions.len();
-    let pos = ArrayD::from_shape_vec(
-        IxDyn(&[v, 3]),
-        mesh.positions.iter().flatten().copied().collect(),
-    )
-    .unwrap();
-    let col = pos.mapv(|x| 0.5 + 0.5 * x);
-    let faces = Arc::new(mesh.faces.clone());
+    let m = peers_view_proj();
+    let PeerScene { pos, col, faces } = peer_scene(subdiv);
     let mut s = SoftSettings::new(size, size, 1.0, 100.0);
     s.sigma = sigma;
     s.gamma = 1e-4;
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
+    let pool = pool(threads);
     let (mut ci, mut cp, mut cc) = (0.0f64, 0.0f64, 0.0f64);
     let t0 = std::time::Instant::now();
     for _ in 0..iters {
