@@ -12,6 +12,7 @@
 //! ```
 #![warn(missing_docs)]
 
+mod active_wait;
 pub mod error;
 pub mod gradcheck;
 mod malloc;
@@ -26,6 +27,7 @@ pub mod tensor;
 mod var_ops;
 mod vmath;
 
+pub use active_wait::ActiveWait;
 pub use error::{AutodiffError, Pass, Result};
 pub use ndarray;
 pub use real::{c, Real};

@@ -19,7 +19,7 @@ use std::sync::Arc;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
-use common::{peer_scene, peers_view_proj, pool, PeerScene};
+use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use render_ops::blend::blend_hard;
 use render_ops::interpolate::interpolate;
@@ -69,7 +69,7 @@ fn bench_forward(c: &mut Criterion) {
                     if cull { "/cull" } else { "" }
                 );
                 g.bench_function(BenchmarkId::from_parameter(id), |b| {
-                    b.iter(|| pool.install(|| rasterize(&clip, &faces, &s).unwrap()))
+                    b.iter(|| frame_in(&pool, || rasterize(&clip, &faces, &s).unwrap()))
                 });
             }
         }
@@ -89,7 +89,7 @@ fn bench_backward(c: &mut Criterion) {
         let id = format!("{}k_faces/512px/2thr", faces.len() / 1000);
         g.bench_function(BenchmarkId::from_parameter(id), |b| {
             b.iter(|| {
-                pool.install(|| {
+                frame_in(&pool, || {
                     rasterize_backward(&clip, &faces, &fr, &gb, Some(&gd), Some(&gd), &s).unwrap()
                 })
             })
@@ -135,10 +135,10 @@ fn bench_pipeline(c: &mut Criterion) {
                 }
             };
             g.bench_function(BenchmarkId::new("forward", &id), |b| {
-                b.iter(|| pool.install(|| run(false).unwrap()))
+                b.iter(|| frame_in(&pool, || run(false).unwrap()))
             });
             g.bench_function(BenchmarkId::new("forward_backward", &id), |b| {
-                b.iter(|| pool.install(|| run(true).unwrap()))
+                b.iter(|| frame_in(&pool, || run(true).unwrap()))
             });
         }
     }
@@ -185,10 +185,10 @@ fn bench_approx(c: &mut Criterion, group: &str, method: ApproxFn) {
                 }
             };
             g.bench_function(BenchmarkId::new("forward", &id), |b| {
-                b.iter(|| pool.install(|| run(false).unwrap()))
+                b.iter(|| frame_in(&pool, || run(false).unwrap()))
             });
             g.bench_function(BenchmarkId::new("forward_backward", &id), |b| {
-                b.iter(|| pool.install(|| run(true).unwrap()))
+                b.iter(|| frame_in(&pool, || run(true).unwrap()))
             });
         }
     }

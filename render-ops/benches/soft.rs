@@ -13,7 +13,7 @@ mod common;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
-use common::{peer_scene, peers_view_proj, pool, PeerScene};
+use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
 use render_ops::transform::to_clip;
@@ -71,11 +71,11 @@ fn bench_soft(c: &mut Criterion) {
             for (name, method) in methods {
                 let id = format!("{}k_faces/{size}px/{threads}thr", sc.faces.len() / 1000);
                 g.bench_function(BenchmarkId::new(format!("{name}/forward"), &id), |b| {
-                    b.iter(|| pool.install(|| run(&sc, size, method, false)))
+                    b.iter(|| frame_in(&pool, || run(&sc, size, method, false)))
                 });
                 g.bench_function(
                     BenchmarkId::new(format!("{name}/forward_backward"), &id),
-                    |b| b.iter(|| pool.install(|| run(&sc, size, method, true))),
+                    |b| b.iter(|| frame_in(&pool, || run(&sc, size, method, true))),
                 );
             }
         }

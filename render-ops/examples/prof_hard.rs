@@ -7,7 +7,8 @@
 //! valgrind --tool=callgrind target/release/examples/prof_hard SIZE ITERS [SUBDIV]
 //! ```
 //!
-//! `SUBDIV` 4 (default) is the 5k-face sphere. `THREADS=N` sets the pool size (default 1).
+//! `SUBDIV` 4 (default) is the 5k-face sphere. `THREADS=N` sets the pool size (default 1);
+//! `HOT=0` turns the frame's `ActiveWait` off.
 //! `GRAD=1` adds the backward of
 //! `sum((image - 0.25)^2)` to positions and colours (`render_hard_f32/forward_backward`), and
 //! the checksum then sums the gradients. `METHOD=deodr` renders with `render_ops::approx::deodr`
@@ -56,7 +57,11 @@ fn main() {
     // `ONCE=1`: one `install` around the whole loop (as an application's loop runs inside
     // its pool), instead of one per iteration (as criterion's `b.iter(|| pool.install(..))`).
     let once = std::env::var("ONCE").is_ok_and(|v| v == "1");
+    // The pool's other workers poll for work during each frame (`ActiveWait`, as the benches'
+    // `frame_in`); `HOT=0` lets rayon park them between parallel regions.
+    let hot = !std::env::var("HOT").is_ok_and(|v| v == "0");
     let mut frame = || {
+        let _hot = hot.then(autodiff::ActiveWait::new);
         let tape = Tape::<f32>::new();
         let p = tape.var(pos.clone(), grad);
         let cv = tape.var(col.clone(), grad);

@@ -8,7 +8,8 @@
 //! valgrind --tool=callgrind target/release/examples/prof_soft SIZE ITERS SIGMA [SUBDIV] [THREADS]
 //! ```
 //!
-//! `SUBDIV` 4 (default) is the 5k-face sphere, `THREADS` 1 by default. Prints ms per
+//! `SUBDIV` 4 (default) is the 5k-face sphere, `THREADS` 1 by default (each frame runs under
+//! `ActiveWait`, as the bench's `frame_in`; `HOT=0` turns that off). Prints ms per
 //! iteration and checksums of the image and the gradients (equal checksums: equal results up
 //! to summation order). Subtract a run with `ITERS = 0` (scene setup) from the instruction
 //! counts.
@@ -17,7 +18,7 @@ mod common;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
-use common::{peer_scene, peers_view_proj, pool, PeerScene};
+use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use render_ops::soft::{softras, SoftSettings};
 use render_ops::transform::to_clip;
 
@@ -36,8 +37,9 @@ fn main() {
     let pool = pool(threads);
     let (mut ci, mut cp, mut cc) = (0.0f64, 0.0f64, 0.0f64);
     let t0 = std::time::Instant::now();
+    let hot = !std::env::var("HOT").is_ok_and(|v| v == "0");
     for _ in 0..iters {
-        pool.install(|| {
+        let frame = || {
             let tape = Tape::<f32>::new();
             let p = tape.var(pos.clone(), true);
             let c = tape.var(col.clone(), true);
@@ -47,7 +49,12 @@ fn main() {
             ci += img.value().unwrap().iter().map(|&x| x as f64).sum::<f64>();
             cp += g.get(p).unwrap().iter().map(|&x| x as f64).sum::<f64>();
             cc += g.get(c).unwrap().iter().map(|&x| x as f64).sum::<f64>();
-        });
+        };
+        if hot {
+            frame_in(&pool, frame);
+        } else {
+            pool.install(frame);
+        }
     }
     eprintln!(
         "{:.3} ms/iter checksum image {ci:.9e} pos {cp:.9e} col {cc:.9e}",

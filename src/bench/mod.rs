@@ -29,7 +29,8 @@
 //!   `None` when not reached within the cap.
 //!
 //! Timings: the median of a few repetitions after one warm-up, each in a rayon pool of the
-//! record's thread count (1 for the accuracy records). Peak memory: the counting allocator
+//! record's thread count (1 for the accuracy records; its other workers poll for work between
+//! a frame's parallel regions, [`autodiff::ActiveWait`]). Peak memory: the counting allocator
 //! ([`alloc`]) over one forward+backward pass.
 
 pub mod alloc;
@@ -814,6 +815,8 @@ fn time_method(
     reps: usize,
 ) -> Result<Timing> {
     let u = [0.0; 6];
+    // The pool's other workers poll between the frame's parallel regions (as in `fit`).
+    let _hot = autodiff::ActiveWait::new();
     let fwd = || -> Result<f64> {
         let t0 = Instant::now();
         let tape = Tape::new();

@@ -174,8 +174,11 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
         total: args.iters,
     };
     let fit_start = Instant::now();
+    // On a worker of rayon's global pool (`scope` runs its body on one), so that the fit's
+    // parallel regions start and end without waking this thread each time.
     let result =
-        fit::fit(&model, &target, None, &opts, &mut |r| progress.report(r)).map_err(err)?;
+        rayon::scope(|_| fit::fit(&model, &target, None, &opts, &mut |r| progress.report(r)))
+            .map_err(err)?;
     let fit_seconds = fit_start.elapsed().as_secs_f64();
 
     let renderer = FaceRenderer::new(&model, opts.render.clone()).map_err(err)?;

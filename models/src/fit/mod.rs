@@ -28,7 +28,10 @@
 //! decay to 10 %. Parameters live outside the tape; every step builds a fresh tape.
 //!
 //! Every kernel involved reduces in a fixed order, so a fit gives bit-identical results for
-//! any number of rayon threads.
+//! any number of rayon threads. The fitting loop holds an [`autodiff::ActiveWait`]: the
+//! current pool's other workers poll for work between the many short parallel regions of a
+//! step instead of being parked and woken for each (call [`fit`] from inside the pool, as
+//! `tapestry fit-face` does, so that the calling thread is a worker too).
 
 mod landmarks;
 mod render;
@@ -693,6 +696,7 @@ pub fn fit(
     let mut params = initial.clone();
     let mut history = Vec::new();
     let mut stage_seconds = [0.0; 2];
+    let _hot = autodiff::ActiveWait::new();
 
     // Stage 1: landmarks only.
     let t0 = Instant::now();

@@ -59,3 +59,13 @@ pub fn pool(threads: usize) -> rayon::ThreadPool {
         .build()
         .expect("thread pool")
 }
+
+/// Runs one frame `f` in `pool` with the pool's other workers polling for work meanwhile
+/// (`autodiff::ActiveWait`, as an application's render or fitting loop would): the wake-up
+/// latency of parked workers is not what these benches measure.
+pub fn frame_in<R: Send>(pool: &rayon::ThreadPool, f: impl FnOnce() -> R + Send) -> R {
+    pool.install(|| {
+        let _hot = autodiff::ActiveWait::new();
+        f()
+    })
+}
