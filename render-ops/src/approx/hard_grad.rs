@@ -56,6 +56,14 @@ struct Scratch {
     acc: Vec<RunVjp>,
     a_face: Vec<f64>,
     ga: Vec<f64>,
+    /// With screen-space barycentrics (`persp = false`): per face its fragments' moments
+    /// `sum ptilde_j dL/dI_ch` (`3 * C`, `ptilde = (px, py, 1)`), from which
+    /// [`affine_factors`] makes its factor sums and `dL/dA` once per face and chunk.
+    mom: Vec<f64>,
+    /// Per face: whether its `dL/dA` is summed per fragment from the stored barycentrics
+    /// (perspective-correct barycentrics, or a face without a usable inverse), not from
+    /// its moments.
+    per_frag_b: Vec<bool>,
 }
 
 impl Scratch {
@@ -69,6 +77,8 @@ impl Scratch {
             acc: Vec::with_capacity(256),
             a_face: Vec::with_capacity(256 * 9),
             ga: Vec::with_capacity(256 * 9),
+            mom: Vec::with_capacity(256 * 9),
+            per_frag_b: Vec::with_capacity(256),
         }
     }
 
@@ -80,8 +90,10 @@ impl Scratch {
         if new {
             let f = inp.faces[fi as usize];
             let v = f.map(|vi| inp.clip[vi as usize].map(|x| x.to_f64c()));
+            let fv = FaceVjp::new(&v);
             self.face.push(fi);
-            self.fv.push(FaceVjp::new(&v));
+            self.per_frag_b.push(inp.persp || !fv.invertible());
+            self.fv.push(fv);
             self.acc.push(RunVjp::default());
             if inp.need_pos {
                 for vi in f {
@@ -91,6 +103,9 @@ impl Scratch {
             }
             if inp.need_attr {
                 self.ga.resize(self.ga.len() + 3 * c, 0.0);
+            }
+            if inp.moments() {
+                self.mom.resize(self.mom.len() + 3 * c, 0.0);
             }
         }
         e
@@ -104,6 +119,8 @@ impl Scratch {
         self.acc.clear();
         self.a_face.clear();
         self.ga.clear();
+        self.mom.clear();
+        self.per_frag_b.clear();
     }
 }
 
@@ -123,6 +140,15 @@ struct Inputs<'a, T> {
     persp: bool,
     need_pos: bool,
     need_attr: bool,
+}
+
+impl<T> Inputs<'_, T> {
+    /// Whether the fragments' moments are summed (screen-space barycentrics, some gradient
+    /// asked for): see [`affine_factors`].
+    #[inline(always)]
+    fn moments(&self) -> bool {
+        !self.persp && (self.need_pos || self.need_attr)
+    }
 }
 
 /// The gradient of the hard render of `attrs` (`[V * C]`) over `frags` (rasterized from
@@ -214,6 +240,10 @@ struct OpenFace<const C: usize> {
     a: [[f64; C]; 3],
     /// `dL/dA` of its three vertices: the entry's `sc.ga`, plus the fragments since opening.
     ga: [[f64; C]; 3],
+    /// The moments (`persp = false`): the entry's `sc.mom`, plus the fragments since opening.
+    mom: [[f64; C]; 3],
+    /// The entry's `sc.per_frag_b`.
+    per_frag_b: bool,
 }
 
 impl<const C: usize> OpenFace<C> {
@@ -226,6 +256,8 @@ impl<const C: usize> OpenFace<C> {
             acc: RunVjp::default(),
             a: [[0.0; C]; 3],
             ga: [[0.0; C]; 3],
+            mom: [[0.0; C]; 3],
+            per_frag_b: false,
         }
     }
 
@@ -238,17 +270,23 @@ impl<const C: usize> OpenFace<C> {
         let e = sc.entry(inp, fi, C);
         self.face = fi;
         self.e = e;
-        self.fv = sc.fv[e].run_setup();
-        self.acc = sc.acc[e];
-        if inp.need_pos {
+        self.per_frag_b = sc.per_frag_b[e];
+        if inp.need_pos && inp.persp {
+            self.fv = sc.fv[e].run_setup();
+            self.acc = sc.acc[e];
             self.a
                 .as_flattened_mut()
                 .copy_from_slice(&sc.a_face[e * 3 * C..][..3 * C]);
         }
-        if inp.need_attr {
+        if inp.need_attr && self.per_frag_b {
             self.ga
                 .as_flattened_mut()
                 .copy_from_slice(&sc.ga[e * 3 * C..][..3 * C]);
+        }
+        if inp.moments() {
+            self.mom
+                .as_flattened_mut()
+                .copy_from_slice(&sc.mom[e * 3 * C..][..3 * C]);
         }
     }
 
@@ -258,11 +296,14 @@ impl<const C: usize> OpenFace<C> {
         if self.face == u32::MAX {
             return;
         }
-        if inp.need_pos {
+        if inp.need_pos && inp.persp {
             sc.acc[self.e] = self.acc;
         }
-        if inp.need_attr {
+        if inp.need_attr && self.per_frag_b {
             sc.ga[self.e * 3 * C..][..3 * C].copy_from_slice(self.ga.as_flattened());
+        }
+        if inp.moments() {
+            sc.mom[self.e * 3 * C..][..3 * C].copy_from_slice(self.mom.as_flattened());
         }
     }
 }
@@ -335,7 +376,15 @@ fn chunk_sums<T: Real, const C: usize>(
                 std::array::from_fn(|ch| g[ch].to_f64c())
             }
         };
-        if inp.need_attr {
+        if inp.moments() {
+            let [x, y] = px_at.ndc();
+            for ch in 0..C {
+                cur.mom[0][ch] += x * gp[ch];
+                cur.mom[1][ch] += y * gp[ch];
+                cur.mom[2][ch] += gp[ch];
+            }
+        }
+        if inp.need_attr && cur.per_frag_b {
             let b = b.map(|x| x.to_f64c());
             for (row, bk) in cur.ga.iter_mut().zip(b) {
                 for (o, g) in row.iter_mut().zip(gp) {
@@ -343,7 +392,7 @@ fn chunk_sums<T: Real, const C: usize>(
                 }
             }
         }
-        if inp.need_pos {
+        if inp.need_pos && inp.persp {
             let mut gb = [0.0; 3];
             for (gk, a) in gb.iter_mut().zip(&cur.a) {
                 for (g, a) in gp.iter().zip(a) {
@@ -354,6 +403,7 @@ fn chunk_sums<T: Real, const C: usize>(
         }
     }
     cur.close(inp, sc);
+    affine_factors(inp, sc, C);
     vertex_sums::<T, C>(inp, sc)
 }
 
@@ -401,7 +451,16 @@ fn chunk_sums_dyn<T: Real>(
                 *o = x.to_f64c();
             }
         }
-        if inp.need_attr && c > 0 {
+        if inp.moments() {
+            let [x, y] = px_at.ndc();
+            let m = &mut sc.mom[e * 3 * c..][..3 * c];
+            for (ch, g) in gpf.iter().enumerate() {
+                m[ch] += x * g;
+                m[c + ch] += y * g;
+                m[2 * c + ch] += g;
+            }
+        }
+        if inp.need_attr && sc.per_frag_b[e] && c > 0 {
             let b = fr.bary[i].map(|x| x.to_f64c());
             for (row, bk) in sc.ga[e * 3 * c..][..3 * c].chunks_exact_mut(c).zip(b) {
                 for (o, g) in row.iter_mut().zip(&gpf) {
@@ -409,7 +468,7 @@ fn chunk_sums_dyn<T: Real>(
                 }
             }
         }
-        if inp.need_pos {
+        if inp.need_pos && inp.persp {
             let mut gb = [0.0; 3];
             if c > 0 {
                 for (gk, a) in gb
@@ -425,7 +484,49 @@ fn chunk_sums_dyn<T: Real>(
             sc.fv[e].accumulate(&mut sc.acc[e], px, gb, inp.persp);
         }
     }
+    affine_factors(inp, sc, c);
     vertex_sums::<T, 0>(inp, sc)
+}
+
+/// With screen-space barycentrics (`persp = false`), each face's factor sums and `dL/dA`
+/// from its fragments' moments (`sc.mom`, `c` channels), once per face and chunk instead of
+/// per fragment. The barycentrics are affine in the pixel, `b_k = w_k u_k` with `u = M^-1
+/// ptilde` ([`FaceVjp::screen_bary_sums`]), and `dL/dbary_i = sum_ch dL/dI_ch A_i,ch` is linear
+/// in `dL/dI`: so `sum_frag b_k dL/dI_ch` and the per-fragment products of
+/// [`crate::raster::RunSetup::accumulate`] are linear maps of the moments (the same sums,
+/// added in another order; `T[j][i] = sum_ch mom[j][ch] A_i,ch` for the latter,
+/// [`crate::raster::RunSetup::affine_sums`]). A face without a usable inverse gets no
+/// position gradient ([`FaceVjp::finish`]) and sums its `dL/dA` per fragment instead.
+fn affine_factors<T>(inp: &Inputs<'_, T>, sc: &mut Scratch, c: usize) {
+    if !inp.moments() {
+        return;
+    }
+    for e in 0..sc.face.len() {
+        if sc.per_frag_b[e] {
+            continue;
+        }
+        let mom = &sc.mom[e * 3 * c..][..3 * c];
+        let fv = &sc.fv[e];
+        if inp.need_pos {
+            let a = &sc.a_face[e * 3 * c..][..3 * c];
+            let t: [[f64; 3]; 3] = std::array::from_fn(|j| {
+                std::array::from_fn(|i| {
+                    let (m, a) = (&mom[j * c..][..c], &a[i * c..][..c]);
+                    m.iter().zip(a).fold(0.0, |s, (m, a)| s + m * a)
+                })
+            });
+            sc.acc[e] = fv.run_setup().affine_sums(&t);
+        }
+        if inp.need_attr {
+            let ga = &mut sc.ga[e * 3 * c..][..3 * c];
+            for ch in 0..c {
+                let b = fv.screen_bary_sums([mom[ch], mom[c + ch], mom[2 * c + ch]]);
+                for k in 0..3 {
+                    ga[k * c + ch] = b[k];
+                }
+            }
+        }
+    }
 }
 
 /// The chunk's per-vertex sums from its faces' entries in `sc`: each face's `dL/dclip`
@@ -481,6 +582,17 @@ mod tests {
     use crate::mesh::Mesh;
     use crate::raster::{rasterize, RasterSettings};
 
+    /// A sphere of 1280 faces in clip space: `x` scaled by `sx`, `w = wz z + w0`.
+    fn sphere_clip(sx: f64, wz: f64, w0: f64) -> (Mesh<f64>, Vec<[f64; 4]>) {
+        let mesh = Mesh::<f64>::icosphere(3, 0.9);
+        let clip = mesh
+            .positions
+            .iter()
+            .map(|p| [p[0] * sx, p[1] + 0.05, p[2] * 0.4 + 0.5, p[2] * wz + w0])
+            .collect();
+        (mesh, clip)
+    }
+
     /// Chunk sums, as bits.
     fn bits(s: &ChunkSums) -> (Vec<u32>, Vec<u64>, Vec<u64>) {
         let f = |x: &f64| x.to_bits();
@@ -494,12 +606,7 @@ mod tests {
     /// fragments per pixel, some pixels' `dL/dI` replaced.
     #[test]
     fn fixed_channel_loop_matches_the_general_one() {
-        let mesh = Mesh::<f64>::icosphere(3, 0.9);
-        let clip: Vec<[f64; 4]> = mesh
-            .positions
-            .iter()
-            .map(|p| [p[0], p[1] + 0.05, p[2] * 0.4 + 0.5, p[2] * 0.2 + 1.2])
-            .collect();
+        let (mesh, clip) = sphere_clip(1.0, 0.2, 1.2);
         let nv = clip.len();
         let (w, h) = (150, 131);
         let wave = |i: usize, s: f64| ((i as f64 * s).sin() * 0.7) as f32;
@@ -557,6 +664,100 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// With screen-space barycentrics the moment form ([`affine_factors`]) gives the sums of
+    /// the per-fragment definition (`dL/dA_k += b_k dL/dI` with the stored barycentrics,
+    /// [`FaceVjp::accumulate`] per fragment) to rounding, in `f64`, for 1, 2 and 3 channels
+    /// (fixed and run-time loops), with some pixels' `dL/dI` replaced.
+    #[test]
+    fn moments_give_the_per_fragment_sums() {
+        let (mesh, clip) = sphere_clip(1.3, 0.3, 1.4);
+        let nv = clip.len();
+        let (w, h) = (97, 83);
+        let wave = |i: usize, s: f64| (i as f64 * s).sin() * 0.7;
+        let s = RasterSettings {
+            perspective_correct: false,
+            ..RasterSettings::new(w, h)
+        };
+        let frags = rasterize(&clip, &mesh.faces, &s).unwrap();
+        let n = frags.len();
+        for c in [1, 2, 3] {
+            let attrs: Vec<f64> = (0..nv * c).map(|i| wave(i, 0.37)).collect();
+            let g: Vec<f64> = (0..w * h * (c + 1)).map(|i| wave(i, 1.3)).collect();
+            let over_pix: Vec<u32> = (0..w * h).step_by(5).map(|p| p as u32).collect();
+            let over_val: Vec<f64> = (0..over_pix.len() * (c + 1))
+                .map(|i| wave(i, 0.9))
+                .collect();
+            let inp = Inputs {
+                clip: &clip,
+                faces: &mesh.faces,
+                frags: &frags,
+                attrs: &attrs,
+                g: &g,
+                over_pix: &over_pix,
+                over_val: &over_val,
+                c,
+                persp: false,
+                need_pos: true,
+                need_attr: true,
+            };
+            // The per-fragment definition, per vertex.
+            let (mut want_pos, mut want_attr) = (vec![[0.0f64; 4]; nv], vec![0.0f64; nv * c]);
+            let mut px_at = PixelCursor::new(&frags, 0);
+            for i in 0..n {
+                px_at.advance(&frags.offsets, i);
+                let p = px_at.p;
+                if frags.offsets[p] as usize != i {
+                    continue;
+                }
+                let gp: Vec<f64> = match over_pix.binary_search(&(p as u32)) {
+                    Ok(k) => over_val[k * (c + 1)..][..c].to_vec(),
+                    Err(_) => g[p * (c + 1)..][..c].to_vec(),
+                };
+                let f = mesh.faces[frags.face[i] as usize];
+                let fv = FaceVjp::new(&f.map(|v| clip[v as usize]));
+                let gb = f.map(|v| (0..c).map(|ch| gp[ch] * attrs[v as usize * c + ch]).sum());
+                let mut acc = RunVjp::default();
+                fv.accumulate(&mut acc, px_at.ndc(), gb, false);
+                for (m, d) in fv.finish(&acc, false).iter().enumerate() {
+                    for j in 0..4 {
+                        want_pos[f[m] as usize][j] += d[j];
+                    }
+                    for ch in 0..c {
+                        want_attr[f[m] as usize * c + ch] += frags.bary[i][m] * gp[ch];
+                    }
+                }
+            }
+            let mut sc = Scratch::new();
+            let (mut got_pos, mut got_attr) = (vec![[0.0f64; 4]; nv], vec![0.0f64; nv * c]);
+            for i0 in (0..n).step_by(CHUNK / 4) {
+                let i1 = (i0 + CHUNK / 4).min(n);
+                let sums = match c {
+                    3 => chunk_sums::<f64, 3>(&inp, &mut sc, i0, i1),
+                    1 => chunk_sums::<f64, 1>(&inp, &mut sc, i0, i1),
+                    _ => chunk_sums_dyn(&inp, &mut sc, i0, i1),
+                };
+                for (k, &v) in sums.verts.iter().enumerate() {
+                    for j in 0..4 {
+                        got_pos[v as usize][j] += sums.pos[k][j];
+                    }
+                    for ch in 0..c {
+                        got_attr[v as usize * c + ch] += sums.attr[k * c + ch];
+                    }
+                }
+            }
+            let close = |a: &[f64], b: &[f64]| {
+                let scale = b.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+                assert!(scale > 0.0);
+                a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-10 * scale)
+            };
+            assert!(
+                close(got_pos.as_flattened(), want_pos.as_flattened()),
+                "pos, c {c}"
+            );
+            assert!(close(&got_attr, &want_attr), "attr, c {c}");
         }
     }
 }

@@ -827,6 +827,23 @@ pub(crate) struct RunSetup {
 }
 
 impl RunSetup {
+    /// The factor sums [`accumulate`](Self::accumulate) reaches with `persp = false` over a
+    /// run of fragments, from their moments `t[j][i] = sum_frag ptilde_j dL/dbary_i`
+    /// (`ptilde = (px, py, 1)`): the screen-space weights `u` are affine in `ptilde`, so
+    /// `sum u_m dL/dbary_i = inv_det sum_j c[m][j] t[j][i]` (the same sum, added in
+    /// another order).
+    #[inline(always)]
+    pub(crate) fn affine_sums(&self, t: &[[f64; 3]; 3]) -> RunVjp {
+        let c = &self.c;
+        RunVjp {
+            k: [0, 1, 2].map(|m| {
+                [0, 1, 2].map(|i| {
+                    (c[m][0] * t[0][i] + c[m][1] * t[1][i] + c[m][2] * t[2][i]) * self.inv_det
+                })
+            }),
+        }
+    }
+
     /// Adds the factors of one fragment at NDC pixel `px` with `dL/dbary = gb` (no depth
     /// gradients) to the run's sum `acc` ([`RunVjp`]).
     #[inline(always)]
@@ -873,7 +890,7 @@ impl FaceVjp {
     /// Whether the face has a usable inverse (`det M` finite, non-zero, not subnormal);
     /// a face without one gets no gradient.
     #[inline]
-    fn invertible(&self) -> bool {
+    pub(crate) fn invertible(&self) -> bool {
         self.det != 0.0 && self.det.is_finite() && self.inv_det.is_finite()
     }
 
@@ -904,6 +921,18 @@ impl FaceVjp {
     #[inline(always)]
     pub(crate) fn accumulate(&self, acc: &mut RunVjp, px: [f64; 2], gb: [f64; 3], persp: bool) {
         self.run_setup().accumulate(acc, px, gb, persp);
+    }
+
+    /// `sum_frag b_k g` over a run of fragments with screen-space barycentrics `b`, from the
+    /// moments `m = (sum px g, sum py g, sum g)` of their values `g` at NDC pixels
+    /// `(px, py)`: `b_k = w_k u_k` with `u = M^-1 (px, py, 1)` (`M u = ptilde` and its `w` row
+    /// makes `sum w_k u_k = 1`), affine in the pixel.
+    #[inline(always)]
+    pub(crate) fn screen_bary_sums(&self, m: [f64; 3]) -> [f64; 3] {
+        let c = &self.c;
+        [0, 1, 2].map(|k| {
+            self.v[k][3] * ((c[k][0] * m[0] + c[k][1] * m[1] + c[k][2] * m[2]) * self.inv_det)
+        })
     }
 
     /// What [`FaceVjp::accumulate`] reads, as a small copy.
