@@ -1,7 +1,8 @@
 //! Forward and forward + backward speed of the soft rasterizers (SoftRas and DIB-R) on the
 //! peers' spheres (`Mesh::icosphere(4)` = ico5k, `Mesh::icosphere(6)` = ico80k) under the
 //! peers' camera, f32, per-vertex colours, RGBA output; the backward is that of
-//! `sum((image - target)^2)` with respect to positions and colours. SoftRas for
+//! `sum((image - target)^2)` (the fused `Var::sum_squared_diff`, the target shared by the
+//! frames as the stand-in reuses its target tensor) with respect to positions and colours. SoftRas for
 //! sigma in {1e-3, 1e-4, 1e-5} (gamma 1e-4, threshold 1e-4), DIB-R at its default delta.
 //! `scripts/bench-soft-peers.sh` runs this bench beside the PyTorch SoftRas stand-in.
 //!
@@ -11,8 +12,10 @@
 
 mod common;
 
+use std::sync::Arc;
+
 use autodiff::ndarray::{ArrayD, IxDyn};
-use autodiff::Tape;
+use autodiff::{Tape, Tensor};
 use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
@@ -25,9 +28,10 @@ enum Method {
 }
 
 /// Renders (and optionally back-propagates) one frame; returns a value so the work is kept.
-fn run(sc: &PeerScene, size: usize, method: Method, grad: bool) -> usize {
+fn run(sc: &PeerScene, size: usize, method: Method, target: Option<&Arc<Tensor<f32>>>) -> usize {
     let m = peers_view_proj();
     let tape = Tape::<f32>::new();
+    let grad = target.is_some();
     let p = tape.var(sc.pos.clone(), grad);
     let c = tape.var(sc.col.clone(), grad);
     let clip = to_clip(p, &m);
@@ -40,9 +44,9 @@ fn run(sc: &PeerScene, size: usize, method: Method, grad: bool) -> usize {
         }
         Method::Dibr => dibr(clip, c, sc.faces.clone(), &DibrSettings::new(size, size)).unwrap(),
     };
-    if grad {
-        let target = tape.constant(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
-        let g = tape.backward((img - target).square().sum()).unwrap();
+    if let Some(target) = target {
+        let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
+        let g = tape.backward(loss).unwrap();
         g.get(p).map(|t| t.len()).unwrap_or(0)
     } else {
         img.value().unwrap().len()
@@ -57,6 +61,7 @@ fn bench_soft(c: &mut Criterion) {
     for subdiv in [4u32, 6] {
         let sc = peer_scene(subdiv);
         for size in [256usize, 512] {
+            let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
             let mut methods = vec![
                 ("softras_sigma1e-3", Method::SoftRas(1e-3)),
                 ("softras_sigma1e-4", Method::SoftRas(1e-4)),
@@ -71,11 +76,11 @@ fn bench_soft(c: &mut Criterion) {
             for (name, method) in methods {
                 let id = format!("{}k_faces/{size}px/{threads}thr", sc.faces.len() / 1000);
                 g.bench_function(BenchmarkId::new(format!("{name}/forward"), &id), |b| {
-                    b.iter(|| frame_in(&pool, || run(&sc, size, method, false)))
+                    b.iter(|| frame_in(&pool, || run(&sc, size, method, None)))
                 });
                 g.bench_function(
                     BenchmarkId::new(format!("{name}/forward_backward"), &id),
-                    |b| b.iter(|| frame_in(&pool, || run(&sc, size, method, true))),
+                    |b| b.iter(|| frame_in(&pool, || run(&sc, size, method, Some(&target)))),
                 );
             }
         }

@@ -1,6 +1,6 @@
 //! Profiling driver for the `f32` SoftRas forward + backward of `benches/soft.rs`
 //! (`softras_sigma*/forward_backward`: positions -> clip -> SoftRas (Liu et al. 2019) RGBA ->
-//! `sum((image - 0.25)^2)` -> gradients of positions and colours), on the peers' icosphere and
+//! `sum((image - 0.25)^2)` (fused, shared target) -> gradients of positions and colours), on the peers' icosphere and
 //! camera:
 //!
 //! ```text
@@ -35,6 +35,7 @@ fn main() {
     s.sigma = sigma;
     s.gamma = 1e-4;
     let pool = pool(threads);
+    let target = std::sync::Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
     let (mut ci, mut cp, mut cc) = (0.0f64, 0.0f64, 0.0f64);
     let t0 = std::time::Instant::now();
     let hot = !std::env::var("HOT").is_ok_and(|v| v == "0");
@@ -44,8 +45,8 @@ fn main() {
             let p = tape.var(pos.clone(), true);
             let c = tape.var(col.clone(), true);
             let img = softras(to_clip(p, &m), c, faces.clone(), &s).unwrap();
-            let target = tape.constant(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
-            let g = tape.backward((img - target).square().sum()).unwrap();
+            let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
+            let g = tape.backward(loss).unwrap();
             ci += img.value().unwrap().iter().map(|&x| x as f64).sum::<f64>();
             cp += g.get(p).unwrap().iter().map(|&x| x as f64).sum::<f64>();
             cc += g.get(c).unwrap().iter().map(|&x| x as f64).sum::<f64>();
