@@ -106,7 +106,8 @@ fn poll_until_idle(shared: &Shared, max_idle: Duration) {
     while !shared.stop.load(Ordering::Acquire) {
         match rayon::yield_now() {
             Some(rayon::Yield::Executed) => idle_since = Instant::now(),
-            Some(rayon::Yield::Idle) if idle_since.elapsed() < max_idle => {}
+            // Let other runnable threads have the core (a no-op on an idle machine).
+            Some(rayon::Yield::Idle) if idle_since.elapsed() < max_idle => std::thread::yield_now(),
             _ => break,
         }
     }
