@@ -12,7 +12,7 @@
 //! ```
 #![warn(missing_docs)]
 
-mod active_wait;
+pub mod active_wait;
 pub mod error;
 pub mod gradcheck;
 mod malloc;

@@ -431,7 +431,7 @@ where
 }
 
 /// `fast` applied to every element, and `exact` where `ok` fails (the vectorised `f32`
-/// transcendentals and their range: see [`crate::vmath`]).
+/// transcendentals and their range: see the `vmath` module).
 pub fn map1_fast<T: Real, F, P, E>(x: &Tensor<T>, fast: F, ok: P, exact: E) -> Tensor<T>
 where
     F: Fn(T) -> T + Sync + Send,

@@ -1,5 +1,5 @@
 //! The rasterizer as a tape op: clip-space positions [V, 4] in, per-fragment barycentrics
-//! [N, 3], NDC depth [N] and view depth [N] out, with the packed fragment layout (which face
+//! `[N, 3]`, NDC depth `[N]` and view depth `[N]` out, with the packed fragment layout (which face
 //! covers which pixel) kept beside them for the later stages. Backward gives the interior
 //! gradients of the `hard` method (fragments keep their faces; barycentrics and depths move).
 
@@ -20,9 +20,9 @@ pub struct Rasterized<'t, T: Real> {
     pub faces: Arc<Vec<[u32; 3]>>,
     /// Barycentrics per fragment [N, 3] (perspective-correct unless the settings say not).
     pub bary: Var<'t, T>,
-    /// NDC depth per fragment [N].
+    /// NDC depth per fragment `[N]`.
     pub depth: Var<'t, T>,
-    /// View-space depth per fragment [N].
+    /// View-space depth per fragment `[N]`.
     pub view_depth: Var<'t, T>,
 }
 

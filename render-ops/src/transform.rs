@@ -51,7 +51,7 @@ fn mat_mul3(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     o
 }
 
-/// Axis-angle vector [3] to rotation matrix [3, 3] (Rodrigues' formula).
+/// Axis-angle vector `[3]` to rotation matrix `[3, 3]` (Rodrigues' formula).
 pub struct AxisAngleOp;
 
 impl<T: Real> Op<T> for AxisAngleOp {
@@ -115,13 +115,13 @@ impl<T: Real> Op<T> for AxisAngleOp {
     }
 }
 
-/// Rotation matrix [3, 3] from an axis-angle vector [3] (direction = axis, norm = angle in
+/// Rotation matrix `[3, 3]` from an axis-angle vector `[3]` (direction = axis, norm = angle in
 /// radians), exact and finite at zero.
 pub fn axis_angle_to_matrix<'t, T: Real>(r: Var<'t, T>) -> Var<'t, T> {
     r.tape().apply(AxisAngleOp, &[r])
 }
 
-/// Rotation matrix [3, 3] from a quaternion [4] `(w, x, y, z)`, normalised first (so any
+/// Rotation matrix `[3, 3]` from a quaternion `[4]` `(w, x, y, z)`, normalised first (so any
 /// non-zero quaternion is valid and the gradient is tangent to the unit sphere).
 pub fn quaternion_to_matrix<'t, T: Real>(q: Var<'t, T>) -> Var<'t, T> {
     let t = q.tape();
@@ -156,7 +156,7 @@ pub fn quaternion_to_matrix<'t, T: Real>(q: Var<'t, T>) -> Var<'t, T> {
     t.concat(&flat, 0).reshape(&[3, 3])
 }
 
-/// Euler angles [3] (radians) to a rotation matrix `R = Rz(c) Ry(b) Rx(a)` for angles
+/// Euler angles `[3]` (radians) to a rotation matrix `R = Rz(c) Ry(b) Rx(a)` for angles
 /// `(a, b, c)` about x, y and z (rotation about x first).
 pub fn euler_xyz_to_matrix<'t, T: Real>(angles: Var<'t, T>) -> Var<'t, T> {
     let t = angles.tape();
@@ -177,7 +177,7 @@ pub fn euler_xyz_to_matrix<'t, T: Real>(angles: Var<'t, T>) -> Var<'t, T> {
     t.concat(&entries, 0).reshape(&[3, 3])
 }
 
-/// `R p + t` for points [N, 3], rotation [3, 3] and translation [3].
+/// `R p + t` for points `[N, 3]`, rotation `[3, 3]` and translation `[3]`.
 pub fn rigid_transform<'t, T: Real>(
     points: Var<'t, T>,
     rot: Var<'t, T>,
@@ -261,7 +261,7 @@ pub fn to_clip<'t, T: Real>(points: Var<'t, T>, matrix: &[[f64; 4]; 4]) -> Var<'
 }
 
 /// Clip coordinates [N, 4] of view-space points [N, 3] (camera looking down -z) under an
-/// OpenGL perspective projection whose focal length `focal` (a [1] variable: `cot(fov_y/2)`)
+/// OpenGL perspective projection whose focal length `focal` (a `[1]` variable: `cot(fov_y/2)`)
 /// can be optimised: `clip = (f/aspect x, f y, A z + B, -z)` with `A = -(far+near)/(far-near)`,
 /// `B = -2 far near/(far-near)` (the gluPerspective matrix).
 pub fn perspective_clip<'t, T: Real>(

@@ -19,6 +19,11 @@
 //! sums in fixed-size locals ([`OpenFace`]) and writes them back when the face changes: the
 //! same additions in the same order as the general loop ([`chunk_sums_dyn`]), without its
 //! per-fragment indexing into the scratch; that loop is built with AVX2 where the CPU has it.
+//!
+//! With screen-space barycentrics (`persp = false`, DEODR's setting) the barycentrics are
+//! affine in the pixel, so a face only sums its fragments' moments `sum (px, py, 1) dL/dI`,
+//! and its factor sums and `dL/dA` are made from them once per face and chunk
+//! ([`affine_factors`]).
 
 use autodiff::Real;
 use rayon::prelude::*;

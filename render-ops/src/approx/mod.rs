@@ -2,22 +2,22 @@
 //! hand-written backward that approximates the derivative of the image at occlusion boundaries
 //! (`tf_mesh`, `opendr`, `nmr`), or an antialiased forward with its exact derivative (`deodr`).
 //!
-//! * [`tf_mesh`]: the TF Mesh Renderer (K. Genova, F. Cole, A. Maschinot, A. Sarna, D. Vlasic and
+//! * [`tf_mesh()`]: the TF Mesh Renderer (K. Genova, F. Cole, A. Maschinot, A. Sarna, D. Vlasic and
 //!   W. T. Freeman, "Unsupervised Training for 3D Morphable Model Regression", CVPR 2018;
 //!   section 4.4 of the survey of H. Kato et al., "Differentiable Rendering: A Survey", 2020):
 //!   gradients through barycentrics of each pixel's nearest triangle, extrapolated past its
 //!   edges, so the surface is treated as locally flat across occlusion boundaries; a one-pixel
 //!   band along the silhouette gets the coverage change of the extended triangle.
-//! * [`opendr`]: OpenDR (M. M. Loper and M. J. Black, "OpenDR: An Approximate Differentiable
+//! * [`opendr()`]: OpenDR (M. M. Loper and M. J. Black, "OpenDR: An Approximate Differentiable
 //!   Renderer", ECCV 2014; survey section 4.1): the derivative of the pixels with respect to the
 //!   screen-space vertex positions from the image-space gradient of the rendered image (central
 //!   differences `1/2 [-1, 0, 1]`), with interior, single-boundary and multi-boundary pixels.
-//! * [`nmr`]: the Neural 3D Mesh Renderer (H. Kato, Y. Ushiku and T. Harada, CVPR 2018, section
+//! * [`nmr()`]: the Neural 3D Mesh Renderer (H. Kato, Y. Ushiku and T. Harada, CVPR 2018, section
 //!   3.3; survey section 4.2, eq. 1-2): per face, edge and scanline, the pixels an edge would
 //!   sweep as a vertex moves along `x` (or `y`) get the colour change over the distance to the
 //!   crossing, `delta_I / delta_x`, kept only where that change lowers the loss.
 //!
-//! * [`deodr`]: DEODR (M. de La Gorce, D. J. Fleet and N. Paragios, TPAMI 2011; survey section
+//! * [`deodr()`]: DEODR (M. de La Gorce, D. J. Fleet and N. Paragios, TPAMI 2011; survey section
 //!   4.4): the hard image with silhouette edges overdrawn by a linear ramp (discontinuity edge
 //!   overdraw), a forward that is continuous in the vertex positions, and its exact derivative.
 //!   Unlike the others, its forward differs from the hard render near silhouettes.
@@ -66,7 +66,7 @@ use crate::rasterize::{as_arrays, as_arrays_mut, clip_rows};
 use crate::soft::common::ndc_to_clip;
 use hard_grad::HardGrad;
 
-/// Settings of [`tf_mesh`], [`opendr`], [`nmr`] and [`deodr`].
+/// Settings of [`tf_mesh()`], [`opendr()`], [`nmr()`] and [`deodr()`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct ApproxSettings {
     /// Image width in pixels.
@@ -79,7 +79,7 @@ pub struct ApproxSettings {
     pub perspective_correct: bool,
     /// Drop clockwise (back) faces (default `false`).
     pub cull_backfaces: bool,
-    /// Width in pixels of [`deodr`]'s overdraw ramp (default 1.0; 0 disables the overdraw).
+    /// Width in pixels of [`deodr()`]'s overdraw ramp (default 1.0; 0 disables the overdraw).
     pub overdraw_px: f64,
 }
 

@@ -631,7 +631,7 @@ fn test_pixel(
 ///
 /// Contributions are computed in parallel over fixed chunks of 4096 fragments; within a chunk
 /// the contributions of each face are summed (in fragment order; without depth gradients in
-/// the factored form of [`RunVjp`], multiplied out once per face and chunk), and the faces'
+/// the factored form of `RunVjp`, multiplied out once per face and chunk), and the faces'
 /// sums are added into the output in chunk order, so the result is bit-identical for any
 /// number of threads. Divisions by `det M` are products with its reciprocal, computed once per
 /// face and chunk.

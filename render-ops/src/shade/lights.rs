@@ -96,7 +96,7 @@ pub struct Lights<'t, T: Real> {
     pub directional: Vec<DirectionalLight<'t, T>>,
     /// Point lights.
     pub point: Vec<PointLight<'t, T>>,
-    /// At most one SH light (used by [`Reflectance::Sh`] / [`super::sh_shade`]).
+    /// At most one SH light (used by the scene shading `sh`, through [`super::sh_shade`]).
     pub sh: Option<ShLight<'t, T>>,
 }
 

@@ -12,7 +12,7 @@
 //!
 //! Cut-off: a face whose term `exp(-d^2 / delta)` is below `threshold` is dropped, i.e. faces
 //! farther than `d_max = sqrt(delta ln(1 / threshold))`; faces are binned into 16 x 16 pixel
-//! tiles by their boxes expanded by `d_max` (shared with `softras`, [`super::common`]). Dropping
+//! tiles by their boxes expanded by `d_max` (shared with `softras`, the `common` module). Dropping
 //! a face changes `A` by at most `threshold * (1 - A)` per dropped face.
 //!
 //! Stability: the product is a sum of logs, `L = sum_j ln(1 - e^{-x_j})` with `x_j = d_j^2 /
@@ -30,7 +30,7 @@
 //! use alpha.
 //!
 //! The forward runs in parallel over tiles (each face over the row spans of its cut-off region,
-//! [`super::common::FaceSpan`]) and keeps each pixel's `P = prod_j f_j`; the backward runs in
+//! `common::FaceSpan`) and keeps each pixel's `P = prod_j f_j`; the backward runs in
 //! parallel over faces, each summing its own pairs with `prod_{k != j} f_k = P / f_j` (recomputed
 //! from the other faces where `P` is subnormal or 0), and adds the per-face sums to the vertices
 //! in face order, so results are bit-identical for any thread count.

@@ -3,7 +3,7 @@
 //! vertex attributes).
 //!
 //! Only faces within the coverage cut-off of a pixel are visited: faces are binned into
-//! 16 x 16 pixel tiles by their screen boxes expanded by the cut-off radius ([`common`]).
+//! 16 x 16 pixel tiles by their screen boxes expanded by the cut-off radius (the `common` module).
 //! The forwards run in parallel over tiles, the backwards in parallel over faces; per-pixel
 //! sums run in face order and per-face sums are added to the vertices in face order, so
 //! results are bit-identical for any thread count. SoftRas on `f32` tapes evaluates 8 pixels

@@ -14,9 +14,9 @@
 //! Faces with a vertex at `w <= 0` are skipped (no near clipping, as in SoftRas).
 //!
 //! Evaluation (forward): per 16 x 16 tile, each binned face is evaluated over the row spans
-//! of its cut-off region within the tile ([`super::common::FaceSpan`]: the scanlines of the
+//! of its cut-off region within the tile (`common::FaceSpan`: the scanlines of the
 //! triangle dilated by the cut-off along its edge normals), from per-face geometry precomputed
-//! once ([`super::common::FaceGeom`]): affine barycentrics, the distance to the boundary of an
+//! once (`common::FaceGeom`): affine barycentrics, the distance to the boundary of an
 //! inside point as `min_k w_k alt_k`, and for an outside point a lower bound that rejects pairs
 //! beyond the cut-off before the exact closest point. `D` and `1 - D` come from one
 //! exponential. Two passes over the tile's faces with per-pixel accumulators (no per-pixel
@@ -31,7 +31,7 @@
 //! some `D = 1`); where `P >= 1/2` the silhouette is `-expm1(sum log1p(-D))` for full relative
 //! precision of faint coverage. Its gradient is `d(1 - P)/dx_f = P D_f`, with no division by `1 - D_f`.
 //!
-//! `f32` tapes ([`fast`]): the same two-pass forward (over bands of 8 whole image rows
+//! `f32` tapes (the `fast` module): the same two-pass forward (over bands of 8 whole image rows
 //! instead of tiles, so that row spans are not cut at tile columns, each band writing its
 //! rows of the image and of the aggregate directly) and per-face backward, with each row
 //! span evaluated 8 consecutive pixels at a time in single precision (eight-lane values the
