@@ -949,3 +949,49 @@ pub(crate) fn assemble<T: Real>(
         dbary_dy,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Walking the fragments in order with [`PixelCursor::advance`] (over gaps of every
+    /// length, including whole rows) lands on [`Fragments::pixel_of`] for every
+    /// fragment, with the column, row and NDC centre of a cursor made there, for 1 and 3
+    /// fragments per pixel and cursors started mid-way.
+    #[test]
+    fn cursor_matches_pixel_of() {
+        let (w, h) = (37usize, 23usize);
+        for (k, seed) in [(1usize, 1u64), (1, 2), (3, 3)] {
+            let mut f = Fragments::<f32>::empty(w, h, k);
+            let mut state = seed;
+            let mut rnd = move || {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (state >> 33) as usize
+            };
+            let mut total = 0u32;
+            for p in 0..w * h {
+                f.offsets[p] = total;
+                // Long gaps (a row and more) and random short ones.
+                let covered = p % 97 < 40 && rnd() % 5 != 0;
+                if covered {
+                    total += 1 + (rnd() % k) as u32;
+                }
+            }
+            f.offsets[w * h] = total;
+            let n = total as usize;
+            assert!(n > 100);
+            for i0 in [0, n / 3, n - 1] {
+                let mut cur = PixelCursor::new(&f, i0);
+                for i in i0..n {
+                    cur.advance(&f.offsets, i);
+                    let want = PixelCursor::new(&f, i);
+                    assert_eq!(cur.p, f.pixel_of(i), "k {k} fragment {i}");
+                    assert_eq!((cur.col, cur.row), (want.col, want.row));
+                    assert_eq!(cur.ndc().map(f64::to_bits), want.ndc().map(f64::to_bits));
+                }
+            }
+        }
+    }
+}
