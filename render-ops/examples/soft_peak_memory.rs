@@ -1,6 +1,7 @@
 //! Peak memory and per-frame time of one soft-rasterizer configuration, forward + backward, on
 //! the bench scene (`render-ops/benches/soft.rs`: the peers' icosphere and camera, f32,
-//! per-vertex colours, RGBA, gradient of `sum((image - 0.25)^2)` w.r.t. positions and colours).
+//! per-vertex colours, RGBA, gradient of `sum((image - 0.25)^2)` (fused, shared target) w.r.t.
+//! positions and colours; each frame under `ActiveWait`, as the bench's `frame_in`).
 //! One configuration per process, so the peak resident set (`VmHWM` of `/proc/self/status`)
 //! belongs to it alone. CPU time (`/proc/self/stat`) is printed beside wall time because on a
 //! shared machine wall time is inflated by other processes' load while CPU time mostly is not.
@@ -10,13 +11,15 @@
 //!     [--subdiv 6] [--size 512] [--sigma 1e-4] [--method softras|dibr] [--iters 3] [--threads 2]
 //! ```
 
+#[path = "../benches/common/mod.rs"]
+mod common;
+
 use std::sync::Arc;
 use std::time::Instant;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
-use render_ops::camera::Camera;
-use render_ops::mesh::Mesh;
+use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
 use render_ops::transform::to_clip;
 
@@ -61,38 +64,18 @@ fn main() {
         }
     }
     assert!(iters > 0, "--iters must be at least 1");
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .expect("thread pool");
-
-    let mesh = Mesh::<f32>::icosphere(subdiv, 1.0);
-    let nv = mesh.positions.len();
-    let pos = ArrayD::from_shape_vec(
-        IxDyn(&[nv, 3]),
-        mesh.positions.iter().flatten().copied().collect(),
-    )
-    .expect("[V, 3]");
-    let col = pos.mapv(|x| 0.5 + 0.5 * x);
-    let faces = Arc::new(mesh.faces.clone());
-    let view_proj = Camera::perspective_look_at(
-        [0.0, 0.0, -3.0],
-        [0.0; 3],
-        [0.0, -1.0, 0.0],
-        2.0 * (0.5f64 / 1.1).atan(),
-        1.0,
-        1.0,
-        100.0,
-    )
-    .expect("valid camera")
-    .view_proj();
+    let pool = pool(threads);
+    let PeerScene { pos, col, faces } = peer_scene(subdiv);
+    let nv = pos.shape()[0];
+    let view_proj = peers_view_proj();
+    let target = Arc::new(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
     let rss_before = status_kb("VmHWM:").unwrap_or(0);
 
     let mut wall = Vec::with_capacity(iters);
     let cpu0 = cpu_seconds();
     for _ in 0..iters {
         let t0 = Instant::now();
-        let grad_len = pool.install(|| {
+        let grad_len = frame_in(&pool, || {
             let tape = Tape::<f32>::new();
             let p = tape.var(pos.clone(), true);
             let c = tape.var(col.clone(), true);
@@ -109,8 +92,7 @@ fn main() {
                 }
                 other => panic!("unknown method {other} (softras | dibr)"),
             };
-            let target = tape.constant(ArrayD::from_elem(IxDyn(&[size, size, 4]), 0.25f32));
-            let loss = (img - target).square().sum();
+            let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
             let grads = tape.backward(loss).expect("backward");
             let g = grads.get(p).expect("position gradient");
             assert!(g.iter().all(|v| v.is_finite()), "non-finite gradient");
