@@ -21,10 +21,9 @@ use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
 use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use render_ops::blend::blend_hard;
-use render_ops::interpolate::interpolate;
 use render_ops::mesh::Mesh;
 use render_ops::raster::{rasterize, rasterize_backward, RasterSettings};
+use render_ops::rasterize::render_attributes;
 use render_ops::transform::to_clip;
 
 /// Clip-space positions and faces of the unit icosphere with `subdiv` subdivisions under the
@@ -99,7 +98,8 @@ fn bench_backward(c: &mut Criterion) {
 }
 
 /// The whole hard pipeline as DEODR's `render` does it (world positions -> clip space ->
-/// rasterize -> interpolate vertex colours -> composite over the background), and the same
+/// rasterize -> interpolate vertex colours -> composite over the background, through
+/// `render_attributes`: in one pass without a fragment list for the forward), and the same
 /// plus the backward of `sum((image - target)^2)` (the fused `Var::sum_squared_diff`) to
 /// positions and colours (DEODR's `render_backward`), f32, with culling (DEODR's setting) and
 /// without barycentric derivatives (nothing reads them) on 1 and 2 threads.
@@ -124,8 +124,8 @@ fn bench_pipeline(c: &mut Criterion) {
                 let tape = Tape::<f32>::new();
                 let p = tape.var(pos.clone(), grad);
                 let cv = tape.var(col.clone(), grad);
-                let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s)?;
-                let img = blend_hard(interpolate(cv, &r)?, &r.fragments, &[0.0; 3])?;
+                // One pass without a fragment list when no gradient is asked for.
+                let img = render_attributes(to_clip(p, &m), cv, faces.clone(), &s, &[0.0; 3])?;
                 if grad {
                     let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
                     let gr = tape.backward(loss)?;

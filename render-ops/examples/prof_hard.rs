@@ -1,6 +1,7 @@
 //! Profiling driver for the hard f32 forward pipeline of `benches/raster.rs`'s
-//! `render_hard_f32/forward` (positions -> clip -> rasterize -> interpolate colours -> hard
-//! blend, back-face culling, one thread), on the peers' icosphere and camera:
+//! `render_hard_f32/forward` (positions -> clip -> `render_attributes`: rasterize, interpolate
+//! colours, hard blend, in one pass when no gradient is asked for; back-face culling, one
+//! thread), on the peers' icosphere and camera:
 //!
 //! ```text
 //! cargo build --release -p tapestry-render-ops --example prof_hard
@@ -27,6 +28,7 @@ use common::{peer_scene, peers_view_proj, pool, PeerScene};
 use render_ops::blend::blend_hard;
 use render_ops::interpolate::interpolate;
 use render_ops::raster::RasterSettings;
+use render_ops::rasterize::render_attributes;
 use render_ops::transform::to_clip;
 
 fn main() {
@@ -60,6 +62,9 @@ fn main() {
     // The pool's other workers poll for work during each frame (`ActiveWait`, as the benches'
     // `frame_in`); `HOT=0` lets rayon park them between parallel regions.
     let hot = !std::env::var("HOT").is_ok_and(|v| v == "0");
+    // `SPLIT=1`: rasterize + interpolate + blend_hard as three ops also for the forward
+    // (by default `render_attributes`, which renders in one pass when no gradient is asked for).
+    let split = std::env::var("SPLIT").is_ok_and(|v| v == "1");
     let mut frame = || {
         let _hot = hot.then(autodiff::ActiveWait::new);
         let tape = Tape::<f32>::new();
@@ -67,9 +72,11 @@ fn main() {
         let cv = tape.var(col.clone(), grad);
         let img = if deodr {
             render_ops::approx::deodr(to_clip(p, &m), cv, faces.clone(), &approx).unwrap()
-        } else {
+        } else if split {
             let r = render_ops::rasterize::rasterize(to_clip(p, &m), faces.clone(), &s).unwrap();
             blend_hard(interpolate(cv, &r).unwrap(), &r.fragments, &[0.0; 3]).unwrap()
+        } else {
+            render_attributes(to_clip(p, &m), cv, faces.clone(), &s, &[0.0; 3]).unwrap()
         };
         if grad {
             let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));

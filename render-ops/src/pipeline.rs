@@ -10,9 +10,8 @@ use ndarray::{ArrayD, IxDyn};
 use crate::approx::{deodr, nmr, opendr, tf_mesh, ApproxSettings};
 use crate::blend::blend_hard;
 use crate::error::RenderError;
-use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
-use crate::rasterize::rasterize;
+use crate::rasterize::{rasterize, render_attributes};
 use crate::scene::{Method, Scene};
 use crate::shade::stage::{texture_rgb, SceneShading, SCENE_SAMPLER};
 use crate::shade::{fragment_inputs, vertex_normals, MeshAttributes};
@@ -286,11 +285,11 @@ impl<T: Real> Scene<T> {
         let bg = self.background();
         let Some(texels) = vars.texture else {
             let faces = Arc::new(self.mesh.faces.clone());
-            let r = rasterize(clip, faces.clone(), &settings)?;
             if !shading.is_lit() {
-                let colors = interpolate(vars.colors * kd, &r)?;
-                return blend_hard(colors, &r.fragments, &bg);
+                // Vertex colours: in one pass when no gradient is asked for.
+                return render_attributes(clip, vars.colors * kd, faces, &settings, &bg);
             }
+            let r = rasterize(clip, faces.clone(), &settings)?;
             let mesh = MeshAttributes::new(vars.positions)
                 .with_normals(vertex_normals(vars.positions, &faces))
                 .with_attribute("color", vars.colors);

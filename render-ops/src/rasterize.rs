@@ -146,6 +146,69 @@ pub(crate) fn as_arrays_mut<T, const N: usize>(s: &mut [T]) -> &mut [[T; N]] {
     unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut [T; N], s.len() / N) }
 }
 
+/// The hard render of per-vertex attributes `attrs` `[V, C]` (vertex colours) over
+/// `background` (`C` values): the image `[H, W, C + 1]` of [`rasterize`] +
+/// [`interpolate`](crate::interpolate::interpolate) + [`blend_hard`](crate::blend::blend_hard),
+/// last channel the coverage, with one fragment per pixel (`faces_per_pixel` is ignored: only
+/// the nearest fragment is drawn).
+///
+/// When neither `clip` nor `attrs` requires gradients the image is made in one pass without a
+/// fragment list ([`crate::raster::render_attributes`]), the same image bit for bit and a
+/// constant on the tape; otherwise through the three ops, whose backward gives the interior
+/// gradients of the `hard` method.
+///
+/// # Errors
+/// Shapes (`clip` not `[V, 4]`, `attrs` not `[V, C]`), and the rasterizer's errors.
+pub fn render_attributes<'t, T: Real>(
+    clip: Var<'t, T>,
+    attrs: Var<'t, T>,
+    faces: Arc<Vec<[u32; 3]>>,
+    settings: &RasterSettings,
+    background: &[T],
+) -> Result<Var<'t, T>, RenderError> {
+    let (cs, as_) = (clip.shape(), attrs.shape());
+    if cs.len() != 2
+        || cs[1] != 4
+        || as_.len() != 2
+        || as_[0] != cs[0]
+        || as_[1] != background.len()
+    {
+        return Err(AutodiffError::shape(
+            "render_attributes",
+            &[&cs, &as_],
+            format!(
+                "clip positions must be [V, 4] and attributes [V, {}] (one value per background channel)",
+                background.len()
+            ),
+        )
+        .into());
+    }
+    let s = RasterSettings {
+        faces_per_pixel: 1,
+        ..*settings
+    };
+    if clip.requires_grad() || attrs.requires_grad() {
+        let r = rasterize(clip, faces, &s)?;
+        let colors = crate::interpolate::interpolate(attrs, &r)?;
+        return crate::blend::blend_hard(colors, &r.fragments, background);
+    }
+    let cv = clip.value()?;
+    let rows = clip_rows(&cv)?;
+    let av = attrs.value()?;
+    let a = av.as_standard_layout();
+    let img = crate::raster::render_attributes(
+        &rows,
+        &faces,
+        a.as_slice().expect("standard layout"),
+        background,
+        &s,
+    )?;
+    let shape = [s.height, s.width, background.len() + 1];
+    Ok(clip
+        .tape()
+        .constant(ArrayD::from_shape_vec(IxDyn(&shape), img).expect("h x w x (c + 1)")))
+}
+
 /// Rasterizes clip-space positions [V, 4] with the given faces (hard z-buffer, up to K
 /// fragments per pixel), recording the op on the tape.
 pub fn rasterize<'t, T: Real>(

@@ -428,15 +428,15 @@ const RUN: usize = TILE_SIZE;
 const _: () = assert!(RUN.is_multiple_of(4));
 
 /// Per-run constants of a face record's fragment values ([`RunConsts::values`]).
-struct RunConsts {
+pub(crate) struct RunConsts {
     /// Row part of the edge functions ([`Setup::row`]).
-    t: [f64; 3],
+    pub t: [f64; 3],
     /// Perspective-correct mode: `sum a_i`, `sum b_i`.
     sa: f64,
     sb: f64,
     /// Screen-space mode: `w_i / det`, and the constant derivatives `a_i w_i / det`,
     /// `b_i w_i / det`.
-    sw: [f64; 3],
+    pub sw: [f64; 3],
     ax: [f64; 3],
     by: [f64; 3],
 }
@@ -445,7 +445,7 @@ impl RunConsts {
     /// The constants of mode `PERSP` for row `row` of setup `st` (runs are short for small
     /// faces: only the mode in use is computed).
     #[inline(always)]
-    fn new<const PERSP: bool>(st: &Setup, row: f64) -> Self {
+    pub(crate) fn new<const PERSP: bool>(st: &Setup, row: f64) -> Self {
         let mut k = RunConsts {
             t: st.row(row),
             sa: 0.0,
@@ -477,7 +477,7 @@ impl RunConsts {
     /// operations defines the values ([`write_run_avx2`] repeats it lane-wise).
     #[inline(always)]
     #[allow(clippy::type_complexity)]
-    fn values<const PERSP: bool>(
+    pub(crate) fn values<const PERSP: bool>(
         &self,
         st: &Setup,
         col: f64,

@@ -25,10 +25,30 @@ pub(crate) struct Scratch {
     pub filled: [u32; TILE_SIZE],
     /// The record ids of the current tile's faces (read ahead to prefetch their records).
     ids: Vec<u32>,
+    /// Slots per pixel.
+    k: usize,
+}
+
+thread_local! {
+    /// This thread's clean [`Scratch`] between tile passes ([`Scratch::with`]).
+    static SCRATCH: std::cell::RefCell<Option<Scratch>> = const { std::cell::RefCell::new(None) };
 }
 
 impl Scratch {
-    fn new(k: usize) -> Self {
+    /// Runs `f` with a clean scratch of `k` slots per pixel: this thread's cached one when it
+    /// has one of that size (a tile pass leaves it clean), else a new one; kept for the next
+    /// call on this thread. Rayon's `map_init` would make one per split job, several per
+    /// frame and thread, each some 12 KiB (`K = 1`) to fill.
+    pub(crate) fn with<R>(k: usize, f: impl FnOnce(&mut Scratch) -> R) -> R {
+        let cached = SCRATCH.with(|c| c.borrow_mut().take().filter(|s| s.k == k));
+        let mut sc = cached.unwrap_or_else(|| Scratch::new(k));
+        // A panic in `f` drops the scratch instead of caching a dirty one.
+        let r = f(&mut sc);
+        SCRATCH.with(|c| *c.borrow_mut() = Some(sc));
+        r
+    }
+
+    pub(crate) fn new(k: usize) -> Self {
         // Padding for the lane groups of `z_test_span_k1` (stays empty).
         let n = TILE_SIZE * TILE_SIZE * k + SPAN_LANES;
         Self {
@@ -37,6 +57,7 @@ impl Scratch {
             span: [(TILE_SIZE as u32, 0); TILE_SIZE],
             filled: [0; TILE_SIZE],
             ids: Vec::new(),
+            k,
         }
     }
 
@@ -50,12 +71,12 @@ impl Scratch {
 }
 
 /// Read-only inputs of the tile pass.
-struct Ctx<'a> {
-    verts: &'a [[f64; 4]],
-    bins: &'a Bins,
-    s: &'a RasterSettings,
+pub(crate) struct Ctx<'a> {
+    pub verts: &'a [[f64; 4]],
+    pub bins: &'a Bins,
+    pub s: &'a RasterSettings,
     /// Whether the AVX2 span test may run ([`use_avx2`]).
-    avx2: bool,
+    pub avx2: bool,
 }
 
 /// Rasterizes clip-space triangles into the `K` nearest fragments per pixel.
@@ -88,6 +109,39 @@ pub(crate) fn rasterize_with<T: Real>(
     s: &RasterSettings,
     avx2: bool,
 ) -> Result<Fragments<T>, RasterError> {
+    let (verts, bins, avx2) = prepare(clip, faces, s, avx2)?;
+    let ctx = Ctx {
+        verts: &verts,
+        bins: &bins,
+        s,
+        avx2,
+    };
+    let tiles: Vec<TileFrags> = (0..bins.num_tiles())
+        .into_par_iter()
+        .map(|t| {
+            Scratch::with(s.faces_per_pixel, |sc| {
+                let rect = bins.tile_rect(t, s.width, s.height);
+                if z_test_tile(t, &rect, &ctx, sc, &mut NoShade) {
+                    TileFrags::pack(sc, &rect, s.faces_per_pixel)
+                } else {
+                    TileFrags::empty()
+                }
+            })
+        })
+        .collect();
+    assemble(tiles, &bins, s, avx2)
+}
+
+/// Validates the inputs, maps the vertices to screen space and bins the faces into tiles:
+/// the set-up shared by [`rasterize`] and the direct render ([`super::direct`]). Returns the
+/// vertices (`f64` clip coordinates), the bins, and whether the AVX2 kernels may run (`avx2`
+/// and the CPU has them).
+pub(crate) fn prepare<T: Real>(
+    clip: &[[T; 4]],
+    faces: &[[u32; 3]],
+    s: &RasterSettings,
+    avx2: bool,
+) -> Result<(Vec<[f64; 4]>, Bins, bool), RasterError> {
     // The AVX2 kernels only where the CPU has them.
     let avx2 = avx2 && use_avx2();
     validate_inputs(clip, faces, s)?;
@@ -104,34 +158,24 @@ pub(crate) fn rasterize_with<T: Real>(
         .with_min_len(4096)
         .for_each(|(((v, p), o), c)| (*v, *p, *o) = to_screen(c, s.width, s.height));
     let bins = bin_faces(&verts, &proj, &outcodes, faces, s);
-    let ctx = Ctx {
-        verts: &verts,
-        bins: &bins,
-        s,
-        avx2,
-    };
-    let tiles: Vec<TileFrags> = (0..bins.num_tiles())
-        .into_par_iter()
-        .map_init(
-            || Scratch::new(s.faces_per_pixel),
-            |sc, t| raster_tile(t, &ctx, sc),
-        )
-        .collect();
-    assemble(tiles, &bins, s, avx2)
+    Ok((verts, bins, avx2))
 }
 
-/// Z-buffers the faces binned to tile `t` and packs the surviving fragments.
-fn raster_tile(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileFrags {
+/// Z-buffers the faces binned to tile `t` (pixel rectangle `rect`) into the K-buffer of
+/// `sc` ([`Scratch`]); false when no face is binned to the tile (nothing was touched).
+pub(crate) fn z_test_tile<S: ZShader>(
+    t: usize,
+    rect: &Rect,
+    ctx: &Ctx<'_>,
+    sc: &mut Scratch,
+    shader: &mut S,
+) -> bool {
     let (s, verts) = (ctx.s, ctx.verts);
     let k = s.faces_per_pixel;
-    let rect = ctx.bins.tile_rect(t, s.width, s.height);
     let mut ids = std::mem::take(&mut sc.ids);
     ids.clear();
     ids.extend(ctx.bins.tile_faces(t));
-    if ids.is_empty() {
-        sc.ids = ids;
-        return TileFrags::empty();
-    }
+    let any = !ids.is_empty();
     for (j, &id) in ids.iter().enumerate() {
         // On fine meshes a tile's records lie far apart in memory (faces in index order):
         // fetch a few records ahead so that their cache misses overlap.
@@ -139,17 +183,22 @@ fn raster_tile(t: usize, ctx: &Ctx<'_>, sc: &mut Scratch) -> TileFrags {
             prefetch_record(ctx.bins.rec(next));
         }
         let rec = ctx.bins.rec(id);
-        let r = rec.rect.intersect(&rect);
+        let r = rec.rect.intersect(rect);
         if r.is_empty() {
             continue;
         }
-        z_test_face(&rec.st, &rec.dz, &r, &rect, verts, sc, id, k, ctx.avx2);
+        if S::ACTIVE {
+            shader.face(rec);
+        }
+        z_test_face(
+            &rec.st, &rec.dz, &r, rect, verts, sc, id, k, ctx.avx2, shader,
+        );
     }
     sc.ids = ids;
-    TileFrags::pack(sc, &rect, k)
+    any
 }
 
-/// Records ahead of the current one that [`raster_tile`] prefetches.
+/// Records ahead of the current one that [`z_test_tile`] prefetches.
 const PREFETCH_AHEAD: usize = 4;
 
 /// Asks the CPU to start loading every cache line of a face record (no effect on results).
@@ -169,12 +218,63 @@ fn prefetch_record(rec: &FaceRec) {
     let _ = rec;
 }
 
+/// Immediate shading hooked into the z-test, for the direct render's fast path
+/// ([`super::direct`]): every fragment is shaded at the moment it wins its pixel's depth test,
+/// so a pixel's last shaded value is that of its nearest fragment. The rasterizer passes
+/// [`NoShade`], whose hooks are compiled out (`ACTIVE == false`).
+pub(crate) trait ZShader {
+    /// Whether the hooks are called.
+    const ACTIVE: bool;
+    /// Face record `rec` is about to be z-tested.
+    fn face(&mut self, rec: &FaceRec);
+    /// The lanes `ok` (a lane mask; `m` its bits) of the group of four pixels at K-buffer
+    /// slots `slot..slot + 4` won their depth tests, with edge values `e` and their sum `sum`
+    /// ([`Setup::eval`], as [`z_test_span_k1`] computes them).
+    ///
+    /// # Safety
+    /// The CPU supports AVX2; the slots are the current tile's.
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn lanes(
+        &mut self,
+        e: &[std::arch::x86_64::__m256d; 3],
+        sum: std::arch::x86_64::__m256d,
+        ok: std::arch::x86_64::__m256d,
+        m: i32,
+        slot: usize,
+    );
+    /// The exact per-pixel test of pixel `(col, row)` (K-buffer slot `slot`, `K = 1`) of the
+    /// face record `li` (setup `st`) has just run: shades it if the face won.
+    fn after_pixel(&mut self, sc: &Scratch, st: &Setup, li: u32, col: f64, row: f64, slot: usize);
+}
+
+/// No shading: the rasterizer's z-test.
+pub(crate) struct NoShade;
+
+impl ZShader for NoShade {
+    const ACTIVE: bool = false;
+    #[inline(always)]
+    fn face(&mut self, _: &FaceRec) {}
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn lanes(
+        &mut self,
+        _: &[std::arch::x86_64::__m256d; 3],
+        _: std::arch::x86_64::__m256d,
+        _: std::arch::x86_64::__m256d,
+        _: i32,
+        _: usize,
+    ) {
+    }
+    #[inline(always)]
+    fn after_pixel(&mut self, _: &Scratch, _: &Setup, _: u32, _: f64, _: f64, _: usize) {}
+}
+
 /// Tests the pixels of `r` (inside tile `rect`) against one face (setup `st`, NDC depth plane
 /// `dz`, [`Setup::depth_plane`]) and inserts its fragments into the K-buffer under record id
 /// `li`.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn z_test_face(
+fn z_test_face<S: ZShader>(
     st: &Setup,
     dz: &[f64; 3],
     r: &Rect,
@@ -184,6 +284,7 @@ fn z_test_face(
     li: u32,
     k: usize,
     avx2: bool,
+    shader: &mut S,
 ) {
     #[cfg(not(target_arch = "x86_64"))]
     let _ = avx2;
@@ -201,6 +302,9 @@ fn z_test_face(
             for (j, col) in (r.c0..r.c1 + 1).enumerate() {
                 let p = (first + j) * k;
                 test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr);
+                if S::ACTIVE {
+                    shader.after_pixel(sc, st, li, col as f64, rf, p);
+                }
             }
         }
         return;
@@ -258,7 +362,7 @@ fn z_test_face(
     #[cfg(target_arch = "x86_64")]
     if k == 1 && avx2 {
         // SAFETY: `avx2` is set only when the CPU has AVX2 (`use_avx2`).
-        unsafe { z_test_rows_k1(st, dz, &spans, rect, verts, sc, li) };
+        unsafe { z_test_rows_k1(st, dz, &spans, rect, verts, sc, li, shader) };
         return;
     }
     for row in spans.rows.clone() {
@@ -274,6 +378,9 @@ fn z_test_face(
         for (j, col) in (cl..cr + 1).enumerate() {
             let p = (first + j) * k;
             test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr);
+            if S::ACTIVE {
+                shader.after_pixel(sc, st, li, col as f64, rf, p);
+            }
         }
     }
 }
@@ -388,7 +495,8 @@ impl SpanVecs {
 /// The CPU must support AVX2; `sc` is a `K = 1` scratch.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn z_test_rows_k1(
+#[allow(clippy::too_many_arguments)]
+unsafe fn z_test_rows_k1<S: ZShader>(
     st: &Setup,
     dz: &[f64; 3],
     spans: &RowSpans,
@@ -396,6 +504,7 @@ unsafe fn z_test_rows_k1(
     verts: &[[f64; 4]],
     sc: &mut Scratch,
     li: u32,
+    shader: &mut S,
 ) {
     use std::arch::x86_64::*;
     let sv = SpanVecs::new(spans);
@@ -433,6 +542,8 @@ unsafe fn z_test_rows_k1(
                 &mut sc.depth[slots.clone()],
                 &mut sc.idx[slots],
                 li,
+                shader,
+                first,
             )
         };
         sc.filled[lr] += filled;
@@ -444,6 +555,9 @@ unsafe fn z_test_rows_k1(
                 if ambiguous_pixel(st, &st.eval(col as f64, &tr)) {
                     let p = first + j;
                     test_pixel(st, verts, sc, 1, li, &tr, dr, dz[0], col as f64, rf, p, lr);
+                    if S::ACTIVE {
+                        shader.after_pixel(sc, st, li, col as f64, rf, p);
+                    }
                 }
             }
         }
@@ -477,7 +591,7 @@ pub(crate) const SPAN_LANES: usize = 4;
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn z_test_span_k1(
+unsafe fn z_test_span_k1<S: ZShader>(
     st: &Setup,
     t: &[std::arch::x86_64::__m256d; 3],
     dr: std::arch::x86_64::__m256d,
@@ -487,6 +601,8 @@ unsafe fn z_test_span_k1(
     depth: &mut [f64],
     idx: &mut [u32],
     li: u32,
+    shader: &mut S,
+    slot0: usize,
 ) -> (u32, bool) {
     use std::arch::x86_64::*;
     let groups = n.div_ceil(SPAN_LANES);
@@ -561,6 +677,11 @@ unsafe fn z_test_span_k1(
             ));
             // SAFETY: `j + 4 <= idx.len()` (asserted above).
             unsafe { _mm_maskstore_epi32(idx.as_mut_ptr().add(j).cast(), ok32, li32) };
+            if S::ACTIVE {
+                // SAFETY: the CPU has AVX2 (the caller's contract); slots `slot0 + j..+4`
+                // are the group's.
+                unsafe { shader.lanes(&[e0, e1, e2], sum, ok, m, slot0 + j) };
+            }
         }
         col = _mm256_add_pd(col, four);
         jv = _mm256_add_pd(jv, four);

@@ -69,10 +69,12 @@ use rayon::prelude::*;
 
 mod bin;
 mod clip;
+mod direct;
 mod edge;
 mod fragments;
 mod hard;
 
+pub use direct::render_attributes;
 pub(crate) use fragments::PixelCursor;
 pub use fragments::{Fragment, Fragments};
 pub use hard::{rasterize, rasterize_backward};

@@ -1101,6 +1101,97 @@ fn avx2_portable_and_derivative_free_fragments_agree() {
     check::<f32>(&clip32, &faces);
 }
 
+/// The direct render ([`render_attributes`]) is the image of the fragments' nearest
+/// barycentrics interpolated as `interpolate` does (`b_0 a_0 + b_1 a_1 + b_2 a_2` in `T`) over
+/// the background, alpha 1 where covered, bit for bit: `f32` and `f64`, 0, 1, 3 and 5
+/// channels, both interpolation modes, culling, AVX2 and portable kernels, 1 and 3 threads, on
+/// a sphere plus a triangle soup (slivers, huge coordinates, `w ~ 0`, vertices behind the
+/// eye), with `faces_per_pixel` 3 in the settings (ignored: the nearest fragment is drawn).
+#[test]
+fn direct_render_matches_interpolated_nearest_fragments() {
+    fn check<T: Real>(clip: &[[T; 4]], faces: &[[u32; 3]]) {
+        let mut covered = 0;
+        for c in [0usize, 1, 3, 5] {
+            let mut rng = Rng(c as u64 + 11);
+            let attrs: Vec<T> = (0..clip.len() * c)
+                .map(|_| T::from_f64c(rng.range(-2.0, 3.0)))
+                .collect();
+            let bg: Vec<T> = (0..c)
+                .map(|i| T::from_f64c(0.25 * i as f64 - 0.3))
+                .collect();
+            for (persp, cull) in [(true, false), (false, true), (true, true)] {
+                let s = RasterSettings {
+                    cull_backfaces: cull,
+                    perspective_correct: persp,
+                    barycentric_derivatives: false,
+                    ..settings(101, 77, 1)
+                };
+                let fr = rasterize_with(clip, faces, &s, true).unwrap();
+                let mut want = Vec::new();
+                for p in 0..fr.num_pixels() {
+                    match fr.nearest(p) {
+                        Some(f) => {
+                            let [a0, a1, a2] =
+                                faces[f.face as usize].map(|v| &attrs[v as usize * c..][..c]);
+                            let b = f.bary;
+                            want.extend(
+                                (0..c).map(|ch| b[0] * a0[ch] + b[1] * a1[ch] + b[2] * a2[ch]),
+                            );
+                            want.push(T::one());
+                            covered += 1;
+                        }
+                        None => {
+                            want.extend_from_slice(&bg);
+                            want.push(T::zero());
+                        }
+                    }
+                }
+                let want: Vec<u64> = want.iter().map(|x| x.to_f64c().to_bits()).collect();
+                let s3 = RasterSettings {
+                    faces_per_pixel: 3,
+                    ..s
+                };
+                for (avx2, threads) in [(true, 1), (true, 3), (false, 2)] {
+                    let pool = rayon::ThreadPoolBuilder::new()
+                        .num_threads(threads)
+                        .build()
+                        .unwrap();
+                    let img = pool.install(|| {
+                        direct::render_attributes_with(clip, faces, &attrs, &bg, &s3, avx2)
+                    });
+                    let got: Vec<u64> =
+                        img.unwrap().iter().map(|x| x.to_f64c().to_bits()).collect();
+                    assert!(got == want, "c {c} persp {persp} cull {cull} avx2 {avx2}");
+                }
+            }
+        }
+        assert!(covered > 20000, "{covered} covered pixels");
+    }
+    let (v, f) = icosphere(3);
+    let m = camera([0.3, 0.2, 2.5], [0.0; 3], 50.0, 1.0, 0.1, 100.0);
+    let mut clip = project::<f64>(&m, &v);
+    let mut faces = f;
+    let (sc, sf) = soup::<f64>(9, 300);
+    let off = clip.len() as u32;
+    clip.extend(sc);
+    faces.extend(sf.iter().map(|t| t.map(|i| i + off)));
+    check::<f64>(&clip, &faces);
+    let clip32: Vec<[f32; 4]> = clip.iter().map(|c| c.map(|x| x as f32)).collect();
+    check::<f32>(&clip32, &faces);
+    // Typed errors: attributes of the wrong length, and the rasterizer's own.
+    let s = settings(8, 8, 1);
+    assert!(matches!(
+        render_attributes(&clip32, &faces, &[0.0f32; 5], &[0.0; 3], &s),
+        Err(RasterError::LengthMismatch { .. })
+    ));
+    let bad = vec![[0u32, 1, clip32.len() as u32]];
+    let attrs = vec![0.0f32; clip32.len() * 3];
+    assert!(matches!(
+        render_attributes(&clip32, &bad, &attrs, &[0.0; 3], &s),
+        Err(RasterError::FaceIndexOutOfRange { .. })
+    ));
+}
+
 // ---------------------------------------------------------------- 6. errors
 
 #[test]
