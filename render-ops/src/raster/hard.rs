@@ -419,50 +419,53 @@ impl RowSpans {
         (cl <= cr).then_some((cl, cr))
     }
 
-    /// [`RowSpans::row`] with AVX2: the three left and three right bounds in one vector each
-    /// (the same products and sums), reduced with `max`/`min` after the NaN bounds are
-    /// dropped (`max_pd(q, c0)` keeps `c0` for a NaN `q`, as the scalar comparison does), and
-    /// the column range rounded with `roundsd`. The same span, bit for bit: `max` and `min` of
-    /// non-NaN values do not depend on the order (a `-0.0` / `+0.0` choice rounds to column 0
-    /// either way).
+    /// [`RowSpans::row`] for the four rows `row..row + 4` at once with AVX2, one row per
+    /// lane: the same products and sums, and the same `max` / `min` sequence over the edges
+    /// (`max_pd(q, lo)` is `q > lo ? q : lo`, so a NaN bound is dropped as in the scalar
+    /// comparison), the columns rounded with `roundpd`. Returns the first and last columns
+    /// per row and a mask whose bit `l` says that row `row + l` has a span (the columns of the
+    /// others are unspecified). The same spans, bit for bit.
     ///
     /// # Safety
     /// The CPU must support AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     #[inline]
-    fn row_avx2(&self, v: &SpanVecs, row: u32) -> Option<(u32, u32)> {
+    fn rows4_avx2(&self, v: &SpanVecs, row: u32) -> ([i32; 4], [i32; 4], i32) {
         use std::arch::x86_64::*;
-        let rf = _mm256_set1_pd(row as f64);
-        let ql = _mm256_add_pd(v.lal, _mm256_mul_pd(v.lbe, rf));
-        let qr = _mm256_add_pd(v.ral, _mm256_mul_pd(v.rbe, rf));
-        let lo4 = _mm256_max_pd(ql, v.c0);
-        let hi4 = _mm256_min_pd(qr, v.c1);
-        // Horizontal max / min of four non-NaN lanes.
-        let lo2 = _mm_max_pd(_mm256_castpd256_pd128(lo4), _mm256_extractf128_pd::<1>(lo4));
-        let hi2 = _mm_min_pd(_mm256_castpd256_pd128(hi4), _mm256_extractf128_pd::<1>(hi4));
-        let lo = _mm_max_sd(lo2, _mm_unpackhi_pd(lo2, lo2));
-        let hi = _mm_min_sd(hi2, _mm_unpackhi_pd(hi2, hi2));
-        if !(_mm_cvtsd_f64(lo) <= _mm_cvtsd_f64(hi)) {
-            return None;
-        }
-        // c0 <= lo <= hi <= c1 here (columns, below 2^31).
-        let (cl, cr) = (
-            _mm_cvttsd_si32(_mm_ceil_sd(lo, lo)),
-            _mm_cvttsd_si32(_mm_floor_sd(hi, hi)),
+        let rf = _mm256_add_pd(
+            _mm256_set1_pd(row as f64),
+            _mm256_setr_pd(0.0, 1.0, 2.0, 3.0),
         );
-        (cl <= cr).then_some((cl as u32, cr as u32))
+        let (mut lo, mut hi) = (v.c0, v.c1);
+        for i in 0..3 {
+            let ql = _mm256_add_pd(v.lal[i], _mm256_mul_pd(v.lbe[i], rf));
+            let qr = _mm256_add_pd(v.ral[i], _mm256_mul_pd(v.rbe[i], rf));
+            lo = _mm256_max_pd(ql, lo);
+            hi = _mm256_min_pd(qr, hi);
+        }
+        let some = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(lo, hi));
+        // Where lo <= hi: c0 <= lo <= hi <= c1 (columns, below 2^31).
+        let cl = _mm256_cvttpd_epi32(_mm256_ceil_pd(lo));
+        let cr = _mm256_cvttpd_epi32(_mm256_floor_pd(hi));
+        let empty = _mm_movemask_ps(_mm_castsi128_ps(_mm_cmpgt_epi32(cl, cr)));
+        let (mut a, mut b) = ([0i32; 4], [0i32; 4]);
+        // SAFETY: `a` and `b` hold four i32.
+        unsafe {
+            _mm_storeu_si128(a.as_mut_ptr().cast(), cl);
+            _mm_storeu_si128(b.as_mut_ptr().cast(), cr);
+        }
+        (a, b, some & !empty)
     }
 }
 
-/// A face's [`RowSpans`] bounds as vectors for [`RowSpans::row_avx2`]: lanes 0-2 the three
-/// edges' bounds, lane 3 an inactive bound (`-inf` left, `+inf` right).
+/// A face's [`RowSpans`] bounds broadcast for [`RowSpans::rows4_avx2`] (one row per lane).
 #[cfg(target_arch = "x86_64")]
 struct SpanVecs {
-    lal: std::arch::x86_64::__m256d,
-    lbe: std::arch::x86_64::__m256d,
-    ral: std::arch::x86_64::__m256d,
-    rbe: std::arch::x86_64::__m256d,
+    lal: [std::arch::x86_64::__m256d; 3],
+    lbe: [std::arch::x86_64::__m256d; 3],
+    ral: [std::arch::x86_64::__m256d; 3],
+    rbe: [std::arch::x86_64::__m256d; 3],
     c0: std::arch::x86_64::__m256d,
     c1: std::arch::x86_64::__m256d,
 }
@@ -475,12 +478,12 @@ impl SpanVecs {
     #[inline]
     fn new(s: &RowSpans) -> Self {
         use std::arch::x86_64::*;
-        let v = |x: [f64; 3], pad: f64| _mm256_setr_pd(x[0], x[1], x[2], pad);
+        let v = |x: [f64; 3]| x.map(|x| _mm256_set1_pd(x));
         SpanVecs {
-            lal: v(s.lal, f64::NEG_INFINITY),
-            lbe: v(s.lbe, 0.0),
-            ral: v(s.ral, f64::INFINITY),
-            rbe: v(s.rbe, 0.0),
+            lal: v(s.lal),
+            lbe: v(s.lbe),
+            ral: v(s.ral),
+            rbe: v(s.rbe),
             c0: _mm256_set1_pd(s.c0),
             c1: _mm256_set1_pd(s.c1),
         }
@@ -516,10 +519,18 @@ unsafe fn z_test_rows_k1<S: ZShader>(
         st.c.map(|x| _mm256_set1_pd(x)),
     );
     let (dz1, dz2) = (_mm256_set1_pd(dz[1]), _mm256_set1_pd(dz[2]));
+    // The spans of four rows at a time (independent of each other, unlike the row bodies).
+    let (mut quad, mut spans4) = (u32::MAX, ([0i32; 4], [0i32; 4], 0i32));
     for row in spans.rows.clone() {
-        let Some((cl, cr)) = spans.row_avx2(&sv, row) else {
+        let q = row & !3;
+        if q != quad {
+            (quad, spans4) = (q, spans.rows4_avx2(&sv, q));
+        }
+        let l = (row - q) as usize;
+        if spans4.2 & (1 << l) == 0 {
             continue;
-        };
+        }
+        let (cl, cr) = (spans4.0[l] as u32, spans4.1[l] as u32);
         let rf = row as f64;
         let rv = _mm256_set1_pd(rf);
         let t = [0, 1, 2].map(|i| _mm256_add_pd(_mm256_mul_pd(b[i], rv), c[i]));
@@ -1172,7 +1183,7 @@ mod tests {
         }
     }
 
-    /// [`RowSpans::row_avx2`] gives [`RowSpans::row`]'s span on every row, also for bounds
+    /// [`RowSpans::rows4_avx2`] gives [`RowSpans::row`]'s span on every row, also for bounds
     /// that are infinite, NaN, far outside the tile or cross it (empty spans).
     #[cfg(target_arch = "x86_64")]
     #[test]
@@ -1211,8 +1222,11 @@ mod tests {
             // SAFETY: the CPU has AVX2 (checked above).
             let sv = unsafe { SpanVecs::new(&spans) };
             for row in spans.rows.clone() {
+                let q = row & !3;
                 // SAFETY: as above.
-                let v = unsafe { spans.row_avx2(&sv, row) };
+                let (cl, cr, some) = unsafe { spans.rows4_avx2(&sv, q) };
+                let l = (row - q) as usize;
+                let v = (some & (1 << l) != 0).then(|| (cl[l] as u32, cr[l] as u32));
                 assert_eq!(
                     v,
                     spans.row(row),
