@@ -101,6 +101,7 @@ pub(crate) fn bin_faces(
     let (w, h) = (s.width as u32, s.height as u32);
     let chunks: Vec<ChunkBins> = faces
         .par_chunks(chunk)
+        .with_max_len(1)
         .enumerate()
         .map(|(ci, fs)| {
             let mut counts = vec![0usize; nt + 1];

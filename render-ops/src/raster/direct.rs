@@ -534,19 +534,24 @@ impl<const PERSP: bool> ZShader for RgbShader<'_, PERSP> {
         slot: usize,
     ) {
         use std::arch::x86_64::*;
-        let bary = if PERSP {
-            let inv = _mm256_div_pd(_mm256_set1_pd(1.0), sum);
-            e.map(|x| _mm256_mul_pd(x, inv))
-        } else {
-            [0, 1, 2].map(|q| _mm256_mul_pd(e[q], _mm256_set1_pd(self.sw[q])))
-        };
         let abs_mask = _mm256_castsi256_pd(_mm256_set1_epi64x(i64::MAX));
         let mv = _mm256_set1_pd(f32::MAX as f64);
         let in_range = |x: __m256d| _mm256_cmp_pd::<_CMP_LE_OQ>(_mm256_and_pd(x, abs_mask), mv);
-        let inr = _mm256_movemask_pd(_mm256_and_pd(
-            _mm256_and_pd(in_range(bary[0]), in_range(bary[1])),
-            in_range(bary[2]),
-        ));
+        let (bary, inr) = if PERSP {
+            let inv = _mm256_div_pd(_mm256_set1_pd(1.0), sum);
+            // The winning lanes are certainly inside (`e_i > bnd_i > 0`) with `sum e > 0`, so
+            // `0 < b_i <= 1` (each `e_i <= sum e`, rounding is monotonic) unless `1 / sum e`
+            // overflows: one test instead of three.
+            let finite = _mm256_cmp_pd::<_CMP_LE_OQ>(inv, _mm256_set1_pd(f64::MAX));
+            (e.map(|x| _mm256_mul_pd(x, inv)), _mm256_movemask_pd(finite))
+        } else {
+            let b = [0, 1, 2].map(|q| _mm256_mul_pd(e[q], _mm256_set1_pd(self.sw[q])));
+            let inr = _mm256_movemask_pd(_mm256_and_pd(
+                _mm256_and_pd(in_range(b[0]), in_range(b[1])),
+                in_range(b[2]),
+            ));
+            (b, inr)
+        };
         let dst = &mut self.color[slot..slot + SPAN_LANES];
         if m & !inr != 0 {
             // A winning lane out of `f32`'s range (slivers at the limits of `f64`): per lane,

@@ -677,8 +677,11 @@ unsafe fn z_test_span_k1<S: ZShader>(
         );
         let m = _mm256_movemask_pd(ok);
         if m != 0 {
-            let fresh = _mm256_and_pd(ok, _mm256_cmp_pd::<_CMP_EQ_OQ>(old, inf));
-            filled += _mm256_movemask_pd(fresh).count_ones();
+            if !S::ACTIVE {
+                // (A shader does not read the counts.)
+                let fresh = _mm256_and_pd(ok, _mm256_cmp_pd::<_CMP_EQ_OQ>(old, inf));
+                filled += _mm256_movemask_pd(fresh).count_ones();
+            }
             // SAFETY: as for the load.
             unsafe { _mm256_storeu_pd(depth.as_mut_ptr().add(j), _mm256_blendv_pd(old, d, ok)) };
             // The low halves of the 64-bit lane masks, as four 32-bit masks.
