@@ -53,6 +53,11 @@
 //!   reports the first offender in index order. Bins list faces in increasing index order
 //!   and depth ties go to the lower face index, so the result is bit-identical for any number
 //!   of threads.
+//! * **Direct render.** A forward that needs only the hard image of per-vertex attributes
+//!   ([`render_attributes`]: vertex colours, no gradients) skips the fragment list: each tile
+//!   task runs the same z-test with `K = 1` and writes its pixels of the image itself, bit for
+//!   bit the image of `rasterize` + `interpolate` + `blend_hard`. For `f32` RGB each fragment is
+//!   shaded in the z-test when it wins its pixel (a hook compiled out of the rasterizer).
 //! * **Degenerate input.** Fragments whose `f64` `sum(e)` is not positive (slivers at the limit
 //!   of `f64` precision) are dropped; output values beyond the range of `T` are saturated, so
 //!   every fragment value is finite.
