@@ -236,5 +236,11 @@ fn render_attributes_matches_the_three_ops() {
     let (p, c) = (t.constant(pos), t.constant(colors));
     let s = RasterSettings::new(8, 8);
     assert!(render_attributes(to_clip(p, &vp), c, faces.clone(), &s, &[0.0; 2]).is_err());
-    assert!(render_attributes(p, c, faces, &s, &[0.0; 3]).is_err());
+    assert!(render_attributes(p, c, faces.clone(), &s, &[0.0; 3]).is_err());
+    // The settings are validated as given, `faces_per_pixel` included.
+    let bad_k = RasterSettings {
+        faces_per_pixel: 0,
+        ..s
+    };
+    assert!(render_attributes(to_clip(p, &vp), c, faces, &bad_k, &[0.0; 3]).is_err());
 }

@@ -149,8 +149,8 @@ pub(crate) fn as_arrays_mut<T, const N: usize>(s: &mut [T]) -> &mut [[T; N]] {
 /// The hard render of per-vertex attributes `attrs` `[V, C]` (vertex colours) over
 /// `background` (`C` values): the image `[H, W, C + 1]` of [`rasterize`] +
 /// [`interpolate`](crate::interpolate::interpolate) + [`blend_hard`](crate::blend::blend_hard),
-/// last channel the coverage, with one fragment per pixel (`faces_per_pixel` is ignored: only
-/// the nearest fragment is drawn).
+/// last channel the coverage, with one fragment per pixel (`faces_per_pixel` is validated as
+/// given, then ignored: only the nearest fragment is drawn).
 ///
 /// When neither `clip` nor `attrs` requires gradients the image is made in one pass without a
 /// fragment list ([`crate::raster::render_attributes`]), the same image bit for bit and a
@@ -183,6 +183,9 @@ pub fn render_attributes<'t, T: Real>(
         )
         .into());
     }
+    // The settings as given are checked (the same limits as `rasterize`, also on
+    // `faces_per_pixel`), then one fragment per pixel is drawn.
+    settings.validate()?;
     let s = RasterSettings {
         faces_per_pixel: 1,
         ..*settings
