@@ -147,16 +147,28 @@ pub(crate) fn prepare<T: Real>(
     validate_inputs(clip, faces, s)?;
     autodiff::tune_malloc();
     let nv = clip.len();
-    let mut verts = vec![[0.0f64; 4]; nv];
-    let mut proj = vec![[0.0f64; 2]; nv];
-    let mut outcodes = vec![0u8; nv];
-    verts
+    // Written once each in parallel (not zeroed first on one thread).
+    let mut verts = Vec::<[f64; 4]>::with_capacity(nv);
+    let mut proj = Vec::<[f64; 2]>::with_capacity(nv);
+    let mut outcodes = Vec::<u8>::with_capacity(nv);
+    verts.spare_capacity_mut()[..nv]
         .par_iter_mut()
-        .zip(proj.par_iter_mut())
-        .zip(outcodes.par_iter_mut())
+        .zip(proj.spare_capacity_mut()[..nv].par_iter_mut())
+        .zip(outcodes.spare_capacity_mut()[..nv].par_iter_mut())
         .zip(clip.par_iter())
         .with_min_len(4096)
-        .for_each(|(((v, p), o), c)| (*v, *p, *o) = to_screen(c, s.width, s.height));
+        .for_each(|(((v, p), o), c)| {
+            let (sv, sp, so) = to_screen(c, s.width, s.height);
+            v.write(sv);
+            p.write(sp);
+            o.write(so);
+        });
+    // SAFETY: all `nv` elements of each were written above.
+    unsafe {
+        verts.set_len(nv);
+        proj.set_len(nv);
+        outcodes.set_len(nv);
+    }
     let bins = bin_faces(&verts, &proj, &outcodes, faces, s);
     Ok((verts, bins, avx2))
 }
