@@ -205,16 +205,9 @@ unsafe fn finish_tile<T: Real, R: RowShader<T>>(
             let dst = job.out.add((row * job.width + rect.c0 as usize) * p);
             shade.row(job, sc.as_deref(), lr, row, ncols, rect.c0, dst);
         }
-        let Some(sc) = sc.as_deref_mut() else {
-            continue;
-        };
-        let (c0, c1) = sc.span[lr];
-        let base = lr * TILE_SIZE;
-        if c0 < c1 {
-            sc.depth[base + c0 as usize..base + c1 as usize].fill(f64::INFINITY);
+        if let Some(sc) = sc.as_deref_mut() {
+            sc.reset_row(lr);
         }
-        sc.span[lr] = (TILE_SIZE as u32, 0);
-        sc.filled[lr] = 0;
     }
 }
 
@@ -529,7 +522,6 @@ impl<const PERSP: bool> ZShader for RgbShader<'_, PERSP> {
         &mut self,
         e: &[std::arch::x86_64::__m256d; 3],
         sum: std::arch::x86_64::__m256d,
-        _ok: std::arch::x86_64::__m256d,
         m: i32,
         slot: usize,
     ) {
@@ -552,7 +544,6 @@ impl<const PERSP: bool> ZShader for RgbShader<'_, PERSP> {
             ));
             (b, inr)
         };
-        let dst = &mut self.color[slot..slot + SPAN_LANES];
         if m & !inr != 0 {
             // A winning lane out of `f32`'s range (slivers at the limits of `f64`): per lane,
             // saturated.
@@ -566,13 +557,12 @@ impl<const PERSP: bool> ZShader for RgbShader<'_, PERSP> {
             for l in 0..SPAN_LANES {
                 if m & (1 << l) != 0 {
                     let bl = [b[0][l], b[1][l], b[2][l]].map(sat::<f32>);
-                    let a = &self.corners;
-                    let ch = |c: usize| bl[0] * a[0][c] + bl[1] * a[1][c] + bl[2] * a[2][c];
-                    dst[l] = [ch(0), ch(1), ch(2), 1.0];
+                    self.color[slot + l] = self.rgba(bl);
                 }
             }
             return;
         }
+        let dst = &mut self.color[slot..slot + SPAN_LANES];
         let b = bary.map(|x| _mm256_cvtpd_ps(x));
         let a = &self.corners;
         let mut px = [0, 1, 2].map(|c| {
@@ -600,11 +590,9 @@ impl<const PERSP: bool> ZShader for RgbShader<'_, PERSP> {
     }
 
     #[inline(always)]
-    fn after_pixel(&mut self, sc: &Scratch, st: &Setup, li: u32, col: f64, row: f64, slot: usize) {
-        if sc.depth[slot] <= 1.0 && sc.idx[slot] == li {
-            let (bary, ..) = RunConsts::new::<PERSP>(st, row).values::<PERSP>(st, col);
-            self.color[slot] = self.rgba(bary.map(sat::<f32>));
-        }
+    fn pixel(&mut self, st: &Setup, col: f64, row: f64, slot: usize) {
+        let (bary, ..) = RunConsts::new::<PERSP>(st, row).values::<PERSP>(st, col);
+        self.color[slot] = self.rgba(bary.map(sat::<f32>));
     }
 }
 

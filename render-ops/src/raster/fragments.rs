@@ -352,12 +352,7 @@ impl TileFrags {
                     }
                 }
             }
-            if c0 < c1 {
-                let p = lr * TILE_SIZE;
-                sc.depth[(p + c0 as usize) * k..(p + c1 as usize) * k].fill(f64::INFINITY);
-            }
-            sc.span[lr] = (TILE_SIZE as u32, 0);
-            sc.filled[lr] = 0;
+            sc.reset_row(lr);
             out.row_start[lr + 1] = out.idx.len() as u32;
         }
         debug_assert_eq!(out.idx.len(), total);

@@ -61,6 +61,19 @@ impl Scratch {
         }
     }
 
+    /// Empties local row `lr` after a tile: refills its tested span with `+inf` and clears the
+    /// span and the filled count ([`TileFrags::pack`], the direct render's `finish_tile`).
+    #[inline(always)]
+    pub(crate) fn reset_row(&mut self, lr: usize) {
+        let (c0, c1) = self.span[lr];
+        if c0 < c1 {
+            let (k, p) = (self.k, lr * TILE_SIZE);
+            self.depth[(p + c0 as usize) * k..(p + c1 as usize) * k].fill(f64::INFINITY);
+        }
+        self.span[lr] = (TILE_SIZE as u32, 0);
+        self.filled[lr] = 0;
+    }
+
     /// Records that local columns `c0..=c1` of local row `lr` are tested.
     #[inline(always)]
     fn touch(&mut self, lr: usize, c0: u32, c1: u32) {
@@ -239,8 +252,8 @@ pub(crate) trait ZShader {
     const ACTIVE: bool;
     /// Face record `rec` is about to be z-tested.
     fn face(&mut self, rec: &FaceRec);
-    /// The lanes `ok` (a lane mask; `m` its bits) of the group of four pixels at K-buffer
-    /// slots `slot..slot + 4` won their depth tests, with edge values `e` and their sum `sum`
+    /// The lanes `m` (bit `l`: lane `l`) of the group of four pixels at K-buffer slots
+    /// `slot..slot + 4` won their depth tests, with edge values `e` and their sum `sum`
     /// ([`Setup::eval`], as [`z_test_span_k1`] computes them).
     ///
     /// # Safety
@@ -250,13 +263,12 @@ pub(crate) trait ZShader {
         &mut self,
         e: &[std::arch::x86_64::__m256d; 3],
         sum: std::arch::x86_64::__m256d,
-        ok: std::arch::x86_64::__m256d,
         m: i32,
         slot: usize,
     );
-    /// The exact per-pixel test of pixel `(col, row)` (K-buffer slot `slot`, `K = 1`) of the
-    /// face record `li` (setup `st`) has just run: shades it if the face won.
-    fn after_pixel(&mut self, sc: &Scratch, st: &Setup, li: u32, col: f64, row: f64, slot: usize);
+    /// Pixel `(col, row)` (K-buffer slot `slot`) of the face with setup `st` has just become
+    /// the nearest in the exact per-pixel test ([`test_pixel`]).
+    fn pixel(&mut self, st: &Setup, col: f64, row: f64, slot: usize);
 }
 
 /// No shading: the rasterizer's z-test.
@@ -272,13 +284,12 @@ impl ZShader for NoShade {
         &mut self,
         _: &[std::arch::x86_64::__m256d; 3],
         _: std::arch::x86_64::__m256d,
-        _: std::arch::x86_64::__m256d,
         _: i32,
         _: usize,
     ) {
     }
     #[inline(always)]
-    fn after_pixel(&mut self, _: &Scratch, _: &Setup, _: u32, _: f64, _: f64, _: usize) {}
+    fn pixel(&mut self, _: &Setup, _: f64, _: f64, _: usize) {}
 }
 
 /// Tests the pixels of `r` (inside tile `rect`) against one face (setup `st`, NDC depth plane
@@ -313,10 +324,9 @@ fn z_test_face<S: ZShader>(
             let first = lr * TILE_SIZE + (r.c0 - rect.c0) as usize;
             for (j, col) in (r.c0..r.c1 + 1).enumerate() {
                 let p = (first + j) * k;
-                test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr);
-                if S::ACTIVE {
-                    shader.after_pixel(sc, st, li, col as f64, rf, p);
-                }
+                test_pixel(
+                    st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr, shader,
+                );
             }
         }
         return;
@@ -389,10 +399,9 @@ fn z_test_face<S: ZShader>(
         let first = lr * TILE_SIZE + (cl - rect.c0) as usize;
         for (j, col) in (cl..cr + 1).enumerate() {
             let p = (first + j) * k;
-            test_pixel(st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr);
-            if S::ACTIVE {
-                shader.after_pixel(sc, st, li, col as f64, rf, p);
-            }
+            test_pixel(
+                st, verts, sc, k, li, &tr, dr, dz[0], col as f64, rf, p, lr, shader,
+            );
         }
     }
 }
@@ -577,10 +586,9 @@ unsafe fn z_test_rows_k1<S: ZShader>(
             for (j, col) in (cl..cr + 1).enumerate() {
                 if ambiguous_pixel(st, &st.eval(col as f64, &tr)) {
                     let p = first + j;
-                    test_pixel(st, verts, sc, 1, li, &tr, dr, dz[0], col as f64, rf, p, lr);
-                    if S::ACTIVE {
-                        shader.after_pixel(sc, st, li, col as f64, rf, p);
-                    }
+                    test_pixel(
+                        st, verts, sc, 1, li, &tr, dr, dz[0], col as f64, rf, p, lr, shader,
+                    );
                 }
             }
         }
@@ -706,7 +714,7 @@ unsafe fn z_test_span_k1<S: ZShader>(
             if S::ACTIVE {
                 // SAFETY: the CPU has AVX2 (the caller's contract); slots `slot0 + j..+4`
                 // are the group's.
-                unsafe { shader.lanes(&[e0, e1, e2], sum, ok, m, slot0 + j) };
+                unsafe { shader.lanes(&[e0, e1, e2], sum, m, slot0 + j) };
             }
         }
         col = _mm256_add_pd(col, four);
@@ -716,10 +724,11 @@ unsafe fn z_test_span_k1<S: ZShader>(
 }
 
 /// Coverage, depth and K-buffer insertion of one pixel (K-buffer slots `p..p + k`, local row
-/// `lr`, whose filled-slot count it keeps).
+/// `lr`, whose filled-slot count it keeps). A fragment that becomes the pixel's nearest goes
+/// to `shader` ([`ZShader::pixel`]).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn test_pixel(
+fn test_pixel<S: ZShader>(
     st: &Setup,
     verts: &[[f64; 4]],
     sc: &mut Scratch,
@@ -732,6 +741,7 @@ fn test_pixel(
     rf: f64,
     p: usize,
     lr: usize,
+    shader: &mut S,
 ) {
     let bnd = &st.bnd;
     let e = st.eval(col, tr);
@@ -763,6 +773,9 @@ fn test_pixel(
     }
     sc.depth[i] = d;
     sc.idx[i] = li;
+    if S::ACTIVE && i == p {
+        shader.pixel(st, col, rf, p);
+    }
 }
 
 /// Vector-Jacobian product of [`rasterize`] with the visibility (which face each fragment

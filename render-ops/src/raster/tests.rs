@@ -915,6 +915,19 @@ fn soup<T: Real>(seed: u64, nf: usize) -> (Vec<[T; 4]>, Vec<[u32; 3]>) {
     (clip.iter().map(|c| c.map(T::from_f64c)).collect(), faces)
 }
 
+/// An icosphere (subdivision 3) seen from a perspective camera plus [`soup`]`(seed, nf)`.
+fn sphere_and_soup(seed: u64, nf: usize) -> (Vec<[f64; 4]>, Vec<[u32; 3]>) {
+    let (v, f) = icosphere(3);
+    let m = camera([0.3, 0.2, 2.5], [0.0; 3], 50.0, 1.0, 0.1, 100.0);
+    let mut clip = project::<f64>(&m, &v);
+    let mut faces = f;
+    let (sc, sf) = soup::<f64>(seed, nf);
+    let off = clip.len() as u32;
+    clip.extend(sc);
+    faces.extend(sf.iter().map(|t| t.map(|i| i + off)));
+    (clip, faces)
+}
+
 fn soups<T: Real>() {
     for seed in 0..6 {
         let (clip, faces) = soup::<T>(seed, 300);
@@ -1022,14 +1035,7 @@ fn bits(fr: &Fragments<f64>) -> Vec<u64> {
 
 #[test]
 fn deterministic_across_thread_counts() {
-    let (v, f) = icosphere(3);
-    let m = camera([0.3, 0.2, 2.5], [0.0; 3], 50.0, 1.0, 0.1, 100.0);
-    let mut clip = project::<f64>(&m, &v);
-    let mut faces = f;
-    let (sc, sf) = soup::<f64>(5, 200);
-    let off = clip.len() as u32;
-    clip.extend(sc);
-    faces.extend(sf.iter().map(|t| t.map(|i| i + off)));
+    let (clip, faces) = sphere_and_soup(5, 200);
     let s = settings(100, 90, 3);
     let run = |n: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
@@ -1088,14 +1094,7 @@ fn avx2_portable_and_derivative_free_fragments_agree() {
         }
         assert!(n > 10000, "{n} fragments");
     }
-    let (v, f) = icosphere(3);
-    let m = camera([0.3, 0.2, 2.5], [0.0; 3], 50.0, 1.0, 0.1, 100.0);
-    let mut clip = project::<f64>(&m, &v);
-    let mut faces = f;
-    let (sc, sf) = soup::<f64>(7, 300);
-    let off = clip.len() as u32;
-    clip.extend(sc);
-    faces.extend(sf.iter().map(|t| t.map(|i| i + off)));
+    let (clip, faces) = sphere_and_soup(7, 300);
     check::<f64>(&clip, &faces);
     let clip32: Vec<[f32; 4]> = clip.iter().map(|c| c.map(|x| x as f32)).collect();
     check::<f32>(&clip32, &faces);
@@ -1167,14 +1166,7 @@ fn direct_render_matches_interpolated_nearest_fragments() {
         }
         assert!(covered > 20000, "{covered} covered pixels");
     }
-    let (v, f) = icosphere(3);
-    let m = camera([0.3, 0.2, 2.5], [0.0; 3], 50.0, 1.0, 0.1, 100.0);
-    let mut clip = project::<f64>(&m, &v);
-    let mut faces = f;
-    let (sc, sf) = soup::<f64>(9, 300);
-    let off = clip.len() as u32;
-    clip.extend(sc);
-    faces.extend(sf.iter().map(|t| t.map(|i| i + off)));
+    let (clip, faces) = sphere_and_soup(9, 300);
     check::<f64>(&clip, &faces);
     let clip32: Vec<[f32; 4]> = clip.iter().map(|c| c.map(|x| x as f32)).collect();
     check::<f32>(&clip32, &faces);
