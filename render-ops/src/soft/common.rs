@@ -327,6 +327,16 @@ pub(crate) struct FaceRows<'a> {
     c1: usize,
 }
 
+impl FaceRows<'_> {
+    /// Only the rows `lo..=hi` (the forwards' bands of rows).
+    #[inline(always)]
+    pub fn within(mut self, lo: usize, hi: usize) -> Self {
+        self.row = self.row.max(lo);
+        self.end = self.end.min(hi + 1);
+        self
+    }
+}
+
 impl Iterator for FaceRows<'_> {
     type Item = (usize, f64, usize, usize);
 

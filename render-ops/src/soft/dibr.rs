@@ -34,6 +34,11 @@
 //! parallel over faces, each summing its own pairs with `prod_{k != j} f_k = P / f_j` (recomputed
 //! from the other faces where `P` is subnormal or 0), and adds the per-face sums to the vertices
 //! in face order, so results are bit-identical for any thread count.
+//!
+//! `f32` tapes take a fast path (the `fast` module, as SoftRas's): the same forward and
+//! backward over bands of whole image rows and per face, eight pixels of a row span at a time
+//! in single precision, with `P` kept in `f64` (an `f32` product underflows where a few dozen
+//! faces are near a pixel); `f64` tapes (gradient checks) keep the evaluation above.
 
 use std::sync::Arc;
 
@@ -44,12 +49,16 @@ use rayon::prelude::*;
 use super::common::{
     check_memory, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom, TileBins, TILE,
 };
+use super::lanes::{band_faces, band_rows, geoms32, padded_px, Geom32};
+use super::simd::LANES;
 use crate::blend::blend_hard;
 use crate::error::RenderError;
 use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
 use crate::rasterize::rasterize;
 use crate::scene::DEFAULT_DIBR_DELTA;
+
+mod fast;
 
 /// Settings of [`dibr`] and [`dibr_alpha`].
 #[derive(Clone, Debug, PartialEq)]
@@ -280,8 +289,17 @@ struct Prep {
     depth: Vec<f64>,
     bins: TileBins,
     /// Per pixel (row-major): `P = prod_j f_j` over the nearby faces, or [`COVERED`] where a
-    /// face covers the pixel centre (alpha 1, no gradient). Written by the forward.
+    /// face covers the pixel centre (alpha 1, no gradient). Written by the `f64` forward.
     prod: Vec<f64>,
+    /// Whether the `f32` fast path ([`fast`]) evaluates this render.
+    fast: bool,
+    /// Column centres padded for 8-lane chunks (fast path only).
+    pxp: Vec<f64>,
+    /// Per face, its `f32` geometry (fast path only).
+    g32: Vec<Geom32>,
+    /// [`Prep::prod`] of the fast path ([`fast::COVERED64`] for covered centres), padded by
+    /// [`LANES`].
+    p64: Vec<f64>,
 }
 
 /// [`Prep::prod`] of a pixel whose centre a face covers.
@@ -484,14 +502,56 @@ impl<T: Real> Op<T> for DibrAlphaOp {
             s.cutoff_sq().sqrt(),
             s.cull_backfaces,
         );
+        let fast = T::as_f32(&[]).is_some() && fast::f32_range_ok(s);
         let mut prep = Prep {
             ndc,
             depth,
             bins,
             prod: Vec::new(),
+            fast,
+            pxp: Vec::new(),
+            g32: Vec::new(),
+            p64: Vec::new(),
         };
         let (w, h) = (s.width, s.height);
         let this = &*self;
+        if fast {
+            prep.pxp = padded_px(&prep.bins.px);
+            prep.g32 = geoms32(&prep.bins);
+            // Bands of image rows in parallel, each straight into its rows of the alpha and of
+            // `p64` (every pixel written).
+            let rows = band_rows(w);
+            let bands = band_faces(&prep.bins, h, rows);
+            let mut img = vec![T::zero(); h * w];
+            let mut p64: Vec<f64> = Vec::with_capacity(h * w + LANES);
+            {
+                let prep = &prep;
+                let img32 = T::as_f32_mut(&mut img).expect("the fast path runs on f32 tapes");
+                let spare = &mut p64.spare_capacity_mut()[..h * w + LANES];
+                for x in &mut spare[h * w..] {
+                    x.write(1.0);
+                }
+                img32
+                    .par_chunks_mut(rows * w)
+                    .zip(spare[..h * w].par_chunks_mut(rows * w))
+                    .zip(bands.par_iter())
+                    .enumerate()
+                    .for_each_init(
+                        || fast::Scratch32::new(w),
+                        |sc, (band, ((irow, prow), tf))| {
+                            this.band_forward32(prep, band, tf, sc, irow, prow)
+                        },
+                    );
+            }
+            // SAFETY: the capacity is h w + LANES; the padding was written above and each
+            // band (h / rows rounded up, over its rows of every column) wrote all its pixels.
+            unsafe { p64.set_len(h * w + LANES) };
+            prep.p64 = p64;
+            self.prep = Some(Arc::new(prep));
+            return Ok(vec![
+                ArrayD::from_shape_vec(IxDyn(&[h, w]), img).expect("h w")
+            ]);
+        }
         // Parallel over tiles, each into its own buffer (local row-major): (alpha, P) a pixel.
         let tiles: Vec<Vec<(f64, f64)>> = {
             let prep = &prep;
@@ -547,12 +607,27 @@ impl<T: Real> Op<T> for DibrAlphaOp {
             .as_ref()
             .ok_or_else(|| AutodiffError::invalid("dibr_alpha", "backward before forward"))?;
         let go = ctx.grad_outputs[0].as_standard_layout();
-        let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
+        let go = go.as_slice().expect("standard layout");
         // Per face: [dX, dY, dW] of each corner.
         const STRIDE: usize = 9;
-        let per_face = prep
-            .bins
-            .per_face(STRIDE, |fi, acc| self.face_gradient(prep, fi, &go, acc));
+        let per_face = match T::as_f32(go) {
+            Some(go32) if prep.fast => {
+                // The alpha gradient, 0 at covered centres (skipped), padded for 8 lanes.
+                let gp: Vec<f32> = go32
+                    .iter()
+                    .zip(&prep.p64)
+                    .map(|(&g, &p)| if p == fast::COVERED64 { 0.0 } else { g })
+                    .chain(std::iter::repeat_n(0.0, LANES))
+                    .collect();
+                prep.bins
+                    .per_face(STRIDE, |fi, acc| self.face_gradient32(prep, fi, &gp, acc))
+            }
+            _ => {
+                let go: Vec<f64> = go.iter().map(|x| x.to_f64c()).collect();
+                prep.bins
+                    .per_face(STRIDE, |fi, acc| self.face_gradient(prep, fi, &go, acc))
+            }
+        };
         let nv = prep.ndc.len();
         let mut gclip = vec![0.0; nv * 4];
         for (fi, f) in self.faces.iter().enumerate() {

@@ -6,11 +6,13 @@
 //! 16 x 16 pixel tiles by their screen boxes expanded by the cut-off radius (the `common` module).
 //! The forwards run in parallel over tiles, the backwards in parallel over faces; per-pixel
 //! sums run in face order and per-face sums are added to the vertices in face order, so
-//! results are bit-identical for any thread count. SoftRas on `f32` tapes evaluates 8 pixels
-//! of a row span at a time in single precision (`simd`, `softras::fast`).
+//! results are bit-identical for any thread count. SoftRas and DIB-R on `f32` tapes evaluate
+//! 8 pixels of a row span at a time in single precision (`simd`, `lanes`, `softras::fast`,
+//! `dibr::fast`).
 
 pub(crate) mod common;
 pub mod dibr;
+pub(crate) mod lanes;
 pub(crate) mod simd;
 pub mod softras;
 

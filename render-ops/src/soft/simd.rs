@@ -248,6 +248,30 @@ pub(crate) fn exp8(x: F8) -> F8 {
     }))
 }
 
+/// Defines the method `$entry(&self, args..)` of `$op`, which runs `self.$imp(args..)` built
+/// with AVX2 enabled where the CPU has it ([`use_avx2`]) and as portable code otherwise: the
+/// same source, so the same bits (`$imp` must be `#[inline(always)]`).
+macro_rules! avx2_method {
+    ($(#[$doc:meta])* $vis:vis fn $entry:ident => $imp:ident($($a:ident: $t:ty),* $(,)?) for $op:ty) => {
+        $(#[$doc])*
+        $vis fn $entry(&self, $($a: $t),*) {
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx2")]
+            fn avx2(op: &$op, $($a: $t),*) {
+                op.$imp($($a),*)
+            }
+            #[cfg(target_arch = "x86_64")]
+            if $crate::soft::simd::use_avx2() {
+                // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
+                unsafe { avx2(self, $($a),*) };
+                return;
+            }
+            self.$imp($($a),*)
+        }
+    };
+}
+pub(crate) use avx2_method;
+
 static FORCE_PORTABLE: AtomicBool = AtomicBool::new(false);
 
 /// Makes the kernels take the portable build even where AVX2 is available (tests: both builds

@@ -52,6 +52,7 @@ use super::common::{
     check_memory_projected, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom,
     Projected, TileBins, TILE,
 };
+use super::lanes;
 use crate::error::RenderError;
 
 mod fast;
@@ -215,7 +216,7 @@ struct Prep {
     /// Column centres padded for 8-lane chunks (fast path only).
     pxp: Vec<f64>,
     /// Per face, its `f32` geometry (fast path only).
-    g32: Vec<fast::Geom32>,
+    g32: Vec<lanes::Geom32>,
 }
 
 /// Leading per-pixel values of [`Prep::pix`] before the attributes.
@@ -559,16 +560,16 @@ impl<T: Real> Op<T> for SoftRasOp {
         let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s, pre, fast);
         let (w, h, c) = (self.s.width, self.s.height, prep.channels);
         if prep.fast {
-            prep.pxp = fast::padded_px(&prep.bins.px);
-            prep.g32 = fast::geoms32(&prep.bins);
+            prep.pxp = lanes::padded_px(&prep.bins.px);
+            prep.g32 = lanes::geoms32(&prep.bins);
         }
         let this = &*self;
         let pstride = PIX_STATS + c;
         if prep.fast {
             // Bands of image rows in parallel, each straight into its rows of the image and
             // of `pix` (every pixel written).
-            let rows = fast::band_rows(w);
-            let bands = fast::band_faces(&prep.bins, h, rows);
+            let rows = lanes::band_rows(w);
+            let bands = lanes::band_faces(&prep.bins, h, rows);
             let mut img = vec![T::from_f64c(0.0); h * w * (c + 1)];
             // Every value of `pix` is written by its band (no image-sized zeroing first).
             let mut pix: Vec<f64> = Vec::with_capacity(h * w * pstride);

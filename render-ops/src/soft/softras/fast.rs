@@ -30,72 +30,12 @@ use std::mem::MaybeUninit;
 use rayon::prelude::*;
 
 use super::{Prep, SoftRasOp, PIX_STATS};
-use crate::soft::common::{exp, FaceGeom};
+use crate::soft::common::exp;
+use crate::soft::lanes::{add_closest_grad, band_rows, lanes_to, offsets, Edges8, Geom32};
 use crate::soft::simd::{arr3, exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
 
 /// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
 pub(super) const FAST_MAX_C: usize = 4;
-
-/// Image rows per band of the forward ([`band_rows`]): the forward runs over bands of whole
-/// image rows in parallel (not over 16 x 16 tiles as the `f64` evaluation), so that no row
-/// span is cut at tile columns into more 8-pixel chunks, and each band writes its own rows of
-/// the image and of the per-pixel aggregate directly. A band holds about `BAND_PIXELS` pixels
-/// (8 rows at 256 pixels a row, fewer rows for wider images), so that its per-pixel scratch
-/// and its list of kept chunks stay cache-sized.
-const BAND_PIXELS: usize = 2048;
-
-/// Rows per band for images `width` pixels wide (1 to 8).
-pub(super) fn band_rows(width: usize) -> usize {
-    (BAND_PIXELS / width.max(1)).clamp(1, 8)
-}
-
-/// One face's screen geometry in `f32`, relative to its first vertex `o` (set up once per
-/// forward for every face, [`geoms32`]).
-#[derive(Clone, Copy)]
-pub(super) struct Geom32 {
-    /// First vertex (origin of the relative coordinates), NDC, `f64`.
-    o: [f64; 2],
-    /// `w_k(q) = bw[k][0] + bw[k][1] q_x + bw[k][2] q_y`, `q = p - o`.
-    bw: [[f32; 3]; 3],
-    alt: [f32; 3],
-    /// Vertices relative to `o`.
-    v: [[f32; 2]; 3],
-    /// Edge `k`: `v[k + 1] - v[k]`.
-    e: [[f32; 2]; 3],
-    inv_ee: [f32; 3],
-    inv_d: [f32; 3],
-}
-
-impl Geom32 {
-    #[inline(always)]
-    fn new(g: &FaceGeom) -> Self {
-        let o = g.v[0];
-        let v = g.v.map(|q| [(q[0] - o[0]) as f32, (q[1] - o[1]) as f32]);
-        let e = arr3(|k| {
-            let (a, b) = (g.v[k], g.v[(k + 1) % 3]);
-            [(b[0] - a[0]) as f32, (b[1] - a[1]) as f32]
-        });
-        Self {
-            o,
-            bw: g.bw.map(|b| b.map(|x| x as f32)),
-            alt: g.alt.map(|x| x as f32),
-            v,
-            e,
-            inv_ee: g.inv_ee.map(|x| x as f32),
-            inv_d: g.inv_d.map(|x| x as f32),
-        }
-    }
-}
-
-/// [`Geom32`] of every face of `bins` (in parallel; skipped faces get that of the default
-/// geometry, never read).
-pub(super) fn geoms32(bins: &crate::soft::common::TileBins) -> Vec<Geom32> {
-    bins.geoms
-        .par_iter()
-        .with_min_len(1024)
-        .map(Geom32::new)
-        .collect()
-}
 
 /// Constants of one render.
 #[derive(Clone, Copy)]
@@ -147,28 +87,10 @@ fn pair8(g: &Geom32, qx: F8, qy: f32, valid: M8, k: &K) -> Option<Pair8> {
     if !(valid & (inside | (dob * dob).le(cut2))).any() {
         return None;
     }
-    // Closest point on each edge (edge i from vertex i to vertex i + 1).
-    let mut t = [zero; 3];
-    let mut rx = [zero; 3];
-    let mut ry = [zero; 3];
-    let mut d2 = [zero; 3];
-    for i in 0..3 {
-        let apx = qx - F8::splat(g.v[i][0]);
-        let apy = F8::splat(qy - g.v[i][1]);
-        let (ex, ey) = (F8::splat(g.e[i][0]), F8::splat(g.e[i][1]));
-        t[i] = ((apx * ex + apy * ey) * F8::splat(g.inv_ee[i]))
-            .max(zero)
-            .min(one);
-        rx[i] = apx - t[i] * ex;
-        ry[i] = apy - t[i] * ey;
-        d2[i] = rx[i] * rx[i] + ry[i] * ry[i];
-    }
-    // Nearest edge, the first one winning ties.
-    let o1 = d2[1].lt(d2[0]);
-    let b01 = select(o1, d2[1], d2[0]);
-    let o2 = d2[2].lt(b01);
-    let d2o = select(o2, d2[2], b01);
-    let out_sel = [!o1 & !o2, o1 & !o2, o2];
+    let ed = Edges8::new(g, qx, qy);
+    // Closest point on each edge, and the nearest edge.
+    let Edges8 { t, rx, ry, .. } = ed;
+    let (d2o, out_sel) = ed.nearest();
     let inv_sigma = F8::splat(k.inv_sigma);
     let x = select(inside, din * din * inv_sigma, -(d2o * inv_sigma));
     // Inside: the foot on the nearest edge line, i.e. the edge opposite the smallest
@@ -231,42 +153,6 @@ fn sigmoid8(p: &Pair8) -> (F8, F8) {
     (select(p.keep, dd, F8::splat(0.0)), select(p.keep, omd, one))
 }
 
-/// Eight set lanes, then eight clear: `HEAD[8 - n..16 - n]` sets the first `n` lanes.
-static HEAD: [u32; 2 * LANES] = [
-    u32::MAX,
-    u32::MAX,
-    u32::MAX,
-    u32::MAX,
-    u32::MAX,
-    u32::MAX,
-    u32::MAX,
-    u32::MAX,
-    0,
-    0,
-    0,
-    0,
-    0,
-    0,
-    0,
-    0,
-];
-
-/// Lanes `0..=b - cs` of the chunk starting at column `cs <= b` (the columns up to `b`).
-#[inline(always)]
-fn lanes_to(cs: usize, b: usize) -> M8 {
-    let n = (b + 1 - cs).min(LANES);
-    M8(HEAD[LANES - n..2 * LANES - n]
-        .try_into()
-        .expect("eight lanes"))
-}
-
-/// Pixel offsets `px[cs + l] - o_x` in `f64`, rounded to `f32` once.
-#[inline(always)]
-fn offsets(px: &[f64], cs: usize, ox: f64) -> F8 {
-    let p: &[f64; LANES] = px[cs..cs + LANES].try_into().expect("eight columns");
-    F8(p.map(|x| (x - ox) as f32))
-}
-
 /// One 8-lane chunk of kept pairs of the forward's first pass, for the second.
 #[derive(Clone, Copy)]
 struct Chunk {
@@ -311,23 +197,6 @@ impl Scratch32 {
     }
 }
 
-/// The faces whose boxes reach each band of `rows` image rows, in face order.
-pub(super) fn band_faces(
-    bins: &crate::soft::common::TileBins,
-    height: usize,
-    rows: usize,
-) -> Vec<Vec<u32>> {
-    let mut bands = vec![Vec::new(); height.div_ceil(rows)];
-    for (fi, r) in bins.rects.iter().enumerate() {
-        if r[0] <= r[1] {
-            for band in bands[r[2] as usize / rows..=r[3] as usize / rows].iter_mut() {
-                band.push(fi as u32);
-            }
-        }
-    }
-    bands
-}
-
 /// `m = max(eps, max_f zn_f)` of a pixel from its `u_min` (start value `u0 = 1 - eps` in
 /// `f32`).
 #[inline]
@@ -346,16 +215,6 @@ pub(super) fn f32_range_ok(s: &super::SoftSettings) -> bool {
     [1.0 / s.sigma, 1.0 / s.gamma, s.near, s.far, zs, 1.0 - s.eps]
         .iter()
         .all(|&v| v == 0.0 || (v.abs() >= f32::MIN_POSITIVE as f64 && v.abs() <= f32::MAX as f64))
-}
-
-/// Column centres `px` padded with 8 more (extrapolated) for whole chunks at the right edge.
-pub(super) fn padded_px(px: &[f64]) -> Vec<f64> {
-    let n = px.len();
-    let d = if n > 1 { px[1] - px[0] } else { 1.0 };
-    px.iter()
-        .copied()
-        .chain((0..LANES).map(|i| px[n - 1] + d * (i + 1) as f64))
-        .collect()
 }
 
 /// Defines the method `$entry(&self, prep, args..)`, which runs `$imp::<C>(prep, args..)` built
@@ -404,7 +263,7 @@ impl SoftRasOp {
 
     channel_kernel! {
         /// [`SoftRasOp::tile_forward`] in `f32`, 8 pixels at a time, over band `band` of
-        /// [`band_rows`] image rows with its faces `tf` ([`band_faces`]), into the band's rows of
+        /// [`band_rows`] image rows with its faces `tf` ([`crate::soft::lanes::band_faces`]), into the band's rows of
         /// the image (`img`, `C + 1` values a pixel) and of [`Prep::pix`] (`pix`).
         fn band_forward32 => band_forward32_impl(
             band: usize,
@@ -468,19 +327,8 @@ impl SoftRasOp {
         // Pass 1: pairs, u_min and P.
         for &fi in tf.iter() {
             runs.push(chunks.len());
-            let rc = bins.rects[fi as usize];
-            let (c0, c1) = (rc[0] as usize, rc[1] as usize);
-            let (r0, r1) = ((rc[2] as usize).max(r_base), (rc[3] as usize).min(r_last));
-            if r0 > r1 {
-                continue;
-            }
             let g = prep.g32[fi as usize];
-            let span = bins.span(fi as usize);
-            for row in r0..=r1 {
-                let py = bins.py[row];
-                let Some((a, b)) = span.row(py, c0, c1) else {
-                    continue;
-                };
+            for (row, py, a, b) in bins.face_rows(fi as usize).within(r_base, r_last) {
                 let qy = (py - g.o[1]) as f32;
                 let mut cs = a;
                 while cs <= b {
@@ -785,15 +633,7 @@ impl SoftRasOp {
                 // Coverage: d(d2) through the closest boundary point.
                 let sign = select(q.x.ge(zero), one, -one);
                 let gd2 = gx * sign * inv_sigma * F8::splat(-2.0);
-                for e in 0..3 {
-                    let ce = select(q.sel[e], gd2, zero);
-                    let (ci, cj) = (ce * (one - q.t[e]), ce * q.t[e]);
-                    let j = (e + 1) % 3;
-                    vgv[e][0] = vgv[e][0] + ci * q.rx[e];
-                    vgv[e][1] = vgv[e][1] + ci * q.ry[e];
-                    vgv[j][0] = vgv[j][0] + cj * q.rx[e];
-                    vgv[j][1] = vgv[j][1] + cj * q.ry[e];
-                }
+                add_closest_grad(&mut vgv, &q.sel, &q.t, &q.rx, &q.ry, gd2);
                 if !blend {
                     continue;
                 }
@@ -864,8 +704,8 @@ mod tests {
     use autodiff::ndarray::{ArrayD, IxDyn};
     use autodiff::{Real, Tape};
 
-    use crate::camera::Camera;
     use crate::mesh::Mesh;
+    use crate::soft::lanes::test_support::{peers_view_proj, rel_l2};
     use crate::soft::simd::set_force_portable;
     use crate::soft::{softras, SoftSettings};
     use crate::transform::to_clip;
@@ -891,17 +731,7 @@ mod tests {
         .unwrap();
         let col = pos.mapv(|x| T::from_f64c(0.5 + 0.5 * x.to_f64c()));
         let faces = Arc::new(mesh.faces.clone());
-        let vp = Camera::perspective_look_at(
-            [0.3, 0.2, -3.0],
-            [0.0; 3],
-            [0.0, -1.0, 0.0],
-            2.0 * (0.5f64 / 1.1).atan(),
-            1.0,
-            1.0,
-            100.0,
-        )
-        .unwrap()
-        .view_proj();
+        let vp = peers_view_proj();
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()
@@ -938,13 +768,6 @@ mod tests {
             / scale
     }
 
-    /// `sqrt(sum (a - b)^2 / sum b^2)`.
-    fn rel_l2(a: &[f64], b: &[f64]) -> f64 {
-        let d: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
-        let n: f64 = b.iter().map(|y| y * y).sum();
-        (d / n).sqrt()
-    }
-
     /// The `f32` fast path against the `f64` evaluation: images within `f32` precision (up to
     /// pairs at the cut-off, whose coverage is the threshold), gradients within a small
     /// relative error of the whole gradient.
@@ -967,14 +790,14 @@ mod tests {
         }
     }
 
-    /// An image whose height is not a multiple of the forward's [`super::band_rows`] (a
+    /// An image whose height is not a multiple of the forward's [`crate::soft::lanes::band_rows`] (a
     /// partial last band) and whose width is not a multiple of 8 (chunks running into the
     /// padding): the same bits for 1 and 3 threads and from the portable build, and the
     /// `f64` evaluation's image and gradients within the tolerances above.
     #[test]
     fn f32_path_partial_band() {
         let size = 75;
-        assert_ne!(size % super::band_rows(size), 0);
+        assert_ne!(size % crate::soft::lanes::band_rows(size), 0);
         let a = render::<f32>(3, size, 1e-4, 1);
         assert!(a == render::<f32>(3, size, 1e-4, 3), "3 threads differ");
         set_force_portable(true);
