@@ -463,6 +463,12 @@ impl DibrAlphaOp {
                 closest_backward(&q, gx / s.delta, &mut gv);
             }
         }
+        self.store_face_gradient(prep, fi, gv, acc);
+    }
+
+    /// Writes face `fi`'s NDC vertex gradients `gv`, chained to clip coordinates, into `acc`
+    /// ([dX, dY, dW] of corner k at `acc[k * 3..]`).
+    fn store_face_gradient(&self, prep: &Prep, fi: usize, gv: [[f64; 2]; 3], acc: &mut [f64]) {
         let f = self.faces[fi];
         for k in 0..3 {
             let vi = f[k] as usize;

@@ -19,7 +19,7 @@
 use std::mem::MaybeUninit;
 
 use super::{DibrAlphaOp, DibrSettings, Prep};
-use crate::soft::common::{closest_backward, exp, ndc_to_clip};
+use crate::soft::common::{closest_backward, exp};
 use crate::soft::lanes::{add_closest_grad, band_rows, lanes_to, offsets, Edges8, Geom32};
 use crate::soft::simd::{arr3, avx2_method, exp8, lanes, select, F8, LANES, M8};
 
@@ -190,11 +190,12 @@ impl DibrAlphaOp {
                 let mut cs = a;
                 while cs <= b {
                     let lp = (row - r_base) * w + cs;
-                    let valid = lanes_to(cs, b) & F8::load(&cov[lp..]).lt(one);
+                    let cov8 = F8::load(&cov[lp..]);
+                    let valid = lanes_to(cs, b) & cov8.lt(one);
                     if valid.any() {
                         if let Some(n) = near8(&g, offsets(pxp, cs, g.o[0]), qy, valid, &k) {
                             if n.covered.any() {
-                                select(n.covered, one, F8::load(&cov[lp..])).store(&mut cov[lp..]);
+                                select(n.covered, one, cov8).store(&mut cov[lp..]);
                             }
                             if n.near.any() {
                                 let (e, f) = factors(&n);
@@ -209,12 +210,13 @@ impl DibrAlphaOp {
                 }
             }
         }
-        // Faint coverage (P >= 1/2): sum ln(1 - e) in f64, in face order.
+        // Faint coverage (P >= 1/2): sum ln(1 - e) in f64, in face order (near lanes lie in
+        // their row's span, so within the band's pixels).
         for ck in chunks.iter() {
             let faint = ck.e.gt(F8::splat(0.0));
             if faint.any() {
                 for l in 0..LANES {
-                    if faint.lane(l) && ck.lp + l < np && prod[ck.lp + l] >= 0.5 {
+                    if faint.lane(l) && prod[ck.lp + l] >= 0.5 {
                         lsum[ck.lp + l] += (-(ck.e.0[l] as f64)).ln_1p();
                     }
                 }
@@ -259,7 +261,7 @@ impl DibrAlphaOp {
         // d(gA)/d(d2) = gA dA/dx / delta, times -2 for the closest point's vertices.
         let scale = F8::splat(-2.0 * k.inv_delta);
         let mut vgv = [[zero; 2]; 3];
-        // Lanes where P is not a normal f32 number: the f64 leave-one-out product.
+        // Lanes where P is not a normal f64 number: the f64 leave-one-out product.
         let mut gv64 = [[0.0f64; 2]; 3];
         for (row, py, a, b) in bins.face_rows(fi) {
             let qy = (py - g.o[1]) as f32;
@@ -313,16 +315,13 @@ impl DibrAlphaOp {
                 }
             }
         }
-        let f = self.faces[fi];
-        for kk in 0..3 {
-            let gv = [
+        let gv = std::array::from_fn(|kk| {
+            [
                 vgv[kk][0].sum_f64() + gv64[kk][0],
                 vgv[kk][1].sum_f64() + gv64[kk][1],
-            ];
-            let vi = f[kk] as usize;
-            let gc = ndc_to_clip(gv, prep.ndc[vi], prep.depth[vi]);
-            acc[kk * 3..kk * 3 + 3].copy_from_slice(&gc);
-        }
+            ]
+        });
+        self.store_face_gradient(prep, fi, gv, acc);
     }
 }
 
