@@ -91,7 +91,7 @@ fn reference_gradient_matches_softras_at_small_sigma() {
     assert!(err < 0.04, "image error {err}");
 }
 
-/// `tapestry bench --tiny`: exit 0, the JSON list with the CONVENTIONS.md fields, the charts.
+/// `tapestry bench --tiny`: exit 0, the JSON list with the docs/CONVENTIONS.md fields, the charts.
 #[test]
 fn bench_command_writes_records_and_charts() {
     let dir = std::env::temp_dir().join(format!("tapestry-bench-{}", std::process::id()));

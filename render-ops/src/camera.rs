@@ -1,4 +1,4 @@
-//! Non-differentiable camera setup in f64 (OpenGL conventions, CONVENTIONS.md).
+//! Non-differentiable camera setup in f64 (OpenGL conventions, docs/CONVENTIONS.md).
 //!
 //! World and view space are right-handed with y up; the camera looks down -z in view space.
 //! `clip = P * V * [x, y, z, 1]`, `ndc = clip.xyz / clip.w`, visible where `-1 <= ndc <= 1`.

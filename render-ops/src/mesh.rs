@@ -9,7 +9,7 @@
 //! Optional attributes are "absent" when their vector is empty: `uvs` + `uv_faces`,
 //! `normals` + `normal_faces`, per-vertex `colors` (one per position).
 //!
-//! Front faces are counter-clockwise seen from outside (CONVENTIONS.md), which the procedural
+//! Front faces are counter-clockwise seen from outside (docs/CONVENTIONS.md), which the procedural
 //! constructors ([`Mesh::icosphere`], [`Mesh::cube`], [`Mesh::grid_plane`]) follow.
 
 use std::collections::HashMap;

@@ -3,7 +3,7 @@
 //! fan-triangulated), read into a [`Mesh`] with **vertex order equal to the file's `v` order**.
 //!
 //! # Why not `tobj::load_obj` directly
-//! The syntax accepted is tobj's (CONVENTIONS.md: "OBJ via tobj"), and the tests check that the
+//! The syntax accepted is tobj's (docs/CONVENTIONS.md: "OBJ via tobj"), and the tests check that the
 //! triangles agree with tobj's on the peer meshes. But tobj 4 cannot give what Tapestry needs:
 //! without `single_index` it still renumbers positions per object in order of first use (so a
 //! `[V, 3]` gradient would not be in file order, and unused vertices vanish), it stores `f32`

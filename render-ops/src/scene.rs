@@ -1,4 +1,4 @@
-//! The scene JSON of CONVENTIONS.md: parsing (serde, unknown keys rejected everywhere), value
+//! The scene JSON of docs/CONVENTIONS.md: parsing (serde, unknown keys rejected everywhere), value
 //! validation, and loading of the files it names.
 //!
 //! ```json
@@ -289,7 +289,7 @@ pub enum Light {
         color: [f64; 3],
     },
     /// Order-2 spherical-harmonics lighting: 9 rows of [r, g, b] in the order and basis of
-    /// CONVENTIONS.md.
+    /// docs/CONVENTIONS.md.
     Sh {
         /// Exactly 9 rows.
         #[serde(deserialize_with = "de_coeffs")]
@@ -398,7 +398,7 @@ pub enum Method {
 }
 
 impl Method {
-    /// Every method, in the order of CONVENTIONS.md.
+    /// Every method, in the order of docs/CONVENTIONS.md.
     pub const ALL: [Method; 7] = [
         Method::Hard,
         Method::TfMesh,
@@ -444,7 +444,7 @@ impl std::fmt::Display for Method {
 /// (recommended `1/sigmainv` in [3e-5, 3e-4]).
 pub const DEFAULT_DIBR_DELTA: f64 = 1.0 / 7000.0;
 
-/// `raster`: method and settings, each optional with the default shown (CONVENTIONS.md).
+/// `raster`: method and settings, each optional with the default shown (docs/CONVENTIONS.md).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Raster {

@@ -4,7 +4,7 @@
 //!
 //! # Conventions
 //! - Texels are `[H, W, C]`, row 0 at the top of the image (as PNG files and
-//!   CONVENTIONS.md images). Texture coordinates follow OpenGL and OBJ: `uv = (0, 0)` is the
+//!   docs/CONVENTIONS.md images). Texture coordinates follow OpenGL and OBJ: `uv = (0, 0)` is the
 //!   bottom-left corner of the image, `(1, 1)` the top-right; texel `(row r, col c)` has its
 //!   centre at `u = (c + 0.5) / W`, `v = 1 - (r + 0.5) / H`.
 //! - Wrap modes act on texel indices: `Repeat` (`i mod n`), `Clamp` (to `[0, n - 1]`, i.e.

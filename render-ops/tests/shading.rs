@@ -564,7 +564,7 @@ fn sh_gradcheck_and_agree() {
             1e-10,
         );
     }
-    // The basis as in CONVENTIONS.md: n = +z with only coefficient 6 (Y_20) set to 1 gives
+    // The basis as in docs/CONVENTIONS.md: n = +z with only coefficient 6 (Y_20) set to 1 gives
     // 0.315392 * 2 times the albedo.
     let tape = Tape::<f64>::new();
     let mut c = ArrayD::zeros(IxDyn(&[9, 3]));

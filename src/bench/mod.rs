@@ -1,8 +1,8 @@
 //! `tapestry bench`: speed against error for every raster method, and scaling in faces,
-//! pixels and threads (issue 8, CONVENTIONS.md "The tapestry command line").
+//! pixels and threads (issue 8, docs/CONVENTIONS.md "The tapestry command line").
 //!
 //! # References
-//! - **Reference image** ([`reference_image`]): the box-filtered image (CONVENTIONS.md) by
+//! - **Reference image** ([`reference_image`]): the box-filtered image (docs/CONVENTIONS.md) by
 //!   supersampling the hard rasterizer: the scene is rendered with method `hard` at
 //!   `S W x S H` pixels and each `S x S` block is averaged (block averaging, no jitter; the
 //!   sub-samples sit at the centres of an `S x S` grid in the pixel square). `S = 16` in the
@@ -746,7 +746,7 @@ pub fn pose_fit(
     Ok((None, last))
 }
 
-/// One row of the report (CONVENTIONS.md fields, plus `kind`, `samples` and the pose fit).
+/// One row of the report (docs/CONVENTIONS.md fields, plus `kind`, `samples` and the pose fit).
 #[derive(Clone, Debug, Serialize)]
 pub struct Record {
     /// `accuracy`, `faces`, `pixels` or `threads`.

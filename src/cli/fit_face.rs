@@ -1,6 +1,6 @@
 //! `tapestry fit-face`: fits the shipped face model to a synthetic target (default) or to a
 //! photo with 2D landmarks, and writes `params.json`, `fit.png`, `overlay.png`,
-//! `loss_curve.svg` and `report.json` (CONVENTIONS.md).
+//! `loss_curve.svg` and `report.json` (docs/CONVENTIONS.md).
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};

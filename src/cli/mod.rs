@@ -1,4 +1,4 @@
-//! The `tapestry` command line (see CONVENTIONS.md): argument parsing and the commands.
+//! The `tapestry` command line (see docs/CONVENTIONS.md): argument parsing and the commands.
 //! Every command returns a typed error that `main` prints as one line on stderr.
 
 mod bench;
@@ -40,7 +40,7 @@ pub enum WrtArg {
 pub enum Command {
     /// Render a scene JSON to a PNG (RGB over the background) and optionally a .npy ([H, W, 4] RGBA).
     Render {
-        /// Scene JSON (CONVENTIONS.md).
+        /// Scene JSON (docs/CONVENTIONS.md).
         scene: PathBuf,
         /// Output PNG.
         #[arg(long)]

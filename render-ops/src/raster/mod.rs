@@ -62,7 +62,7 @@
 //!   of `f64` precision) are dropped; output values beyond the range of `T` are saturated, so
 //!   every fragment value is finite.
 //!
-//! Conventions (see `CONVENTIONS.md`): OpenGL clip space, pixel `(row r, col c)` centred at
+//! Conventions (see `docs/CONVENTIONS.md`): OpenGL clip space, pixel `(row r, col c)` centred at
 //! `ndc = (2 (c + 0.5) / W - 1, 1 - 2 (r + 0.5) / H)`, row 0 at the top, front faces
 //! counter-clockwise in NDC.
 

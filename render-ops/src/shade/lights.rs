@@ -1,7 +1,7 @@
 //! Lights and materials as small tape variables, so that their parameters (directions,
 //! colours, positions, SH coefficients, reflectances, shininess) can be optimised.
 //!
-//! Conventions (CONVENTIONS.md): colours are linear RGB; a directional light's `direction` is
+//! Conventions (docs/CONVENTIONS.md): colours are linear RGB; a directional light's `direction` is
 //! the direction the light *travels* (the surface is lit from `-direction`); a point light
 //! shines equally in all directions without distance attenuation (as PyTorch3D's
 //! `PointLights`); ambient lights add up; an SH light holds 9 rows of RGB coefficients.
@@ -41,7 +41,7 @@ pub struct PointLight<'t, T: Real> {
 }
 
 /// Order-2 spherical-harmonics environment light: `[9, 3]` coefficients in the order and basis
-/// of CONVENTIONS.md (see [`super::sh`]).
+/// of docs/CONVENTIONS.md (see [`super::sh`]).
 #[derive(Clone, Copy, Debug)]
 pub struct ShLight<'t, T: Real> {
     /// Coefficients `[9, 3]`.

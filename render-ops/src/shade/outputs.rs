@@ -38,7 +38,7 @@ pub fn normal_map_view<'t, T: Real>(normal: Var<'t, T>, view: &[[f64; 4]; 4]) ->
 }
 
 /// Depth output `[N, 1]`: `(d - near) / (far - near)` of view depths `d` `[N]` (or `[N, 1]`),
-/// linear in view depth as CONVENTIONS.md's `z01`: 0 at the near plane, 1 at the far plane.
+/// linear in view depth as docs/CONVENTIONS.md's `z01`: 0 at the near plane, 1 at the far plane.
 pub fn depth_map<'t, T: Real>(view_depth: Var<'t, T>, near: f64, far: f64) -> Var<'t, T> {
     let n = view_depth.len();
     let s = 1.0 / (far - near);

@@ -1,7 +1,7 @@
 //! Order-2 spherical-harmonics lighting (R. Ramamoorthi and P. Hanrahan, "An efficient
 //! representation for irradiance environment maps", SIGGRAPH 2001).
 //!
-//! The basis, its order and its constants are exactly those of CONVENTIONS.md: for the unit
+//! The basis, its order and its constants are exactly those of docs/CONVENTIONS.md: for the unit
 //! world-space normal `(x, y, z)`, in the order (l, m) = (0,0), (1,-1), (1,0), (1,1), (2,-2),
 //! (2,-1), (2,0), (2,1), (2,2),
 //!

@@ -1,5 +1,5 @@
 //! The shading stage of the scene pipeline ([`crate::pipeline`]): a scene's `material` and
-//! `lights` (CONVENTIONS.md) turned into one call that shades per fragment (hard methods,
+//! `lights` (docs/CONVENTIONS.md) turned into one call that shades per fragment (hard methods,
 //! after rasterization and interpolation) or per vertex (Gouraud shading, for methods that
 //! take per-vertex attributes such as SoftRas).
 //!
