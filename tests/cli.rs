@@ -10,10 +10,7 @@ fn tapestry() -> Command {
 
 #[test]
 fn render_and_grad_write_their_files() {
-    let Some(peers) = common::peers_dir() else {
-        eprintln!("peer kit not found: skipped");
-        return;
-    };
+    let peers = common::peers_dir();
     let dir = std::env::temp_dir().join(format!("tapestry-cli-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let scene = peers.join("scenes/ico5k_hard.json");

@@ -1,8 +1,5 @@
-//! The data layer against the peer kit (`../shared/peers`: scenes, reference arrays) and the
-//! files in `tests/data`.
-//!
-//! The peer kit is looked up at `$TAPESTRY_PEERS`, else `<workspace>/../shared/peers`; tests that
-//! need it print a note and return when it is absent (a checkout without the shared folder).
+//! The data layer against the peer kit's scenes and reference arrays (vendored in
+//! `tests/data/peers`, see `common::peers`) and the other files in `tests/data`.
 
 use std::path::{Path, PathBuf};
 
@@ -13,21 +10,7 @@ use render_ops::mesh::Mesh;
 use render_ops::obj::{load_obj, ObjError};
 use render_ops::scene::{Method, Scene, SceneError, Shading};
 
-fn peers() -> Option<PathBuf> {
-    let dir = match std::env::var_os("TAPESTRY_PEERS") {
-        Some(d) => PathBuf::from(d),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/peers"),
-    };
-    if dir.join("scenes/ico5k.obj").is_file() {
-        Some(dir)
-    } else {
-        eprintln!(
-            "peer kit not found at {} (set TAPESTRY_PEERS); skipping",
-            dir.display()
-        );
-        None
-    }
-}
+mod common;
 
 fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -68,7 +51,7 @@ fn f_lines(path: &Path) -> Vec<[u32; 3]> {
 
 #[test]
 fn ico5k_obj_loads_in_file_order_with_colours() {
-    let Some(peers) = peers() else { return };
+    let peers = common::peers();
     for name in ["ico5k.obj", "ico5k_target.obj"] {
         let path = peers.join("scenes").join(name);
         let m: Mesh<f64> = load_obj(&path).unwrap();
@@ -95,7 +78,7 @@ fn ico5k_obj_loads_in_file_order_with_colours() {
 
 #[test]
 fn procedural_icosphere_reproduces_ico5k_bit_for_bit() {
-    let Some(peers) = peers() else { return };
+    let peers = common::peers();
     let file: Mesh<f64> = load_obj(peers.join("scenes/ico5k.obj")).unwrap();
     let ico = Mesh::<f64>::icosphere(4, 1.0);
     assert_eq!(ico.faces, file.faces);
@@ -104,7 +87,7 @@ fn procedural_icosphere_reproduces_ico5k_bit_for_bit() {
 
 #[test]
 fn every_peer_scene_json_loads() {
-    let Some(peers) = peers() else { return };
+    let peers = common::peers();
     let mut count = 0;
     let mut entries: Vec<PathBuf> = std::fs::read_dir(peers.join("scenes"))
         .unwrap()
@@ -142,7 +125,7 @@ fn every_peer_scene_json_loads() {
 /// v = (1 - ndc.y) H / 2) projects like the peers' OpenCV camera K, R = I, t = (0, 0, 3).
 #[test]
 fn reference_camera_matches_opencv_k() {
-    let Some(peers) = peers() else { return };
+    let peers = common::peers();
     let k = read_npy_shape::<f64>(peers.join("reference/camera_K.npy"), &[3, 3])
         .unwrap()
         .into_dimensionality::<Ix2>()
@@ -202,7 +185,7 @@ fn reference_camera_matches_opencv_k() {
 
 #[test]
 fn reference_arrays_read_and_round_trip() {
-    let Some(peers) = peers() else { return };
+    let peers = common::peers();
     let img: ArrayD<f64> =
         read_npy_shape(peers.join("reference/hard_image.npy"), &[128, 128, 3]).unwrap();
     assert!(img.iter().all(|&x| (0.0..=1.0).contains(&x)));

@@ -4,7 +4,6 @@
 //! as a silhouette crosses pixel centres), agreement with DEODR 0.2.3's own image and gradients
 //! on the peer kit's reference scene, f32 against f64, determinism and typed errors.
 
-use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use autodiff::gradcheck::{gradcheck, GradcheckOptions};
@@ -18,22 +17,6 @@ use render_ops::transform::to_clip;
 
 mod common;
 use common::{clip_row, perspective_clip, smooth_colours, t2, weights};
-
-fn peers() -> Option<PathBuf> {
-    let dir = match std::env::var_os("TAPESTRY_PEERS") {
-        Some(d) => PathBuf::from(d),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/peers"),
-    };
-    if dir.join("reference/deodr_image.npy").is_file() {
-        Some(dir)
-    } else {
-        eprintln!(
-            "peer kit not found at {} (set TAPESTRY_PEERS); skipping",
-            dir.display()
-        );
-        None
-    }
-}
 
 /// A front triangle partly in front of a larger one (occlusion edges over a surface, boundary
 /// edges over the background), counter-clockwise in NDC.
@@ -289,7 +272,7 @@ fn cosine(a: &[f64], b: &[f64]) -> f64 {
 /// target render).
 #[test]
 fn matches_deodr_reference() {
-    let Some(peers) = peers() else { return };
+    let peers = common::peers();
     let reference = peers.join("reference");
     let scene = Scene::<f64>::load(peers.join("scenes/ico5k_deodr.json")).unwrap();
     let mut s = settings(128, 128, false, true);

@@ -2,7 +2,6 @@
 //! SoftRas: gradient checks, the hard limit, agreement with the SoftRas reference, determinism
 //! (speed: `render-ops/benches/soft.rs`).
 
-use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use autodiff::gradcheck::{gradcheck, GradcheckOptions};
@@ -20,22 +19,6 @@ use render_ops::transform::to_clip;
 
 mod common;
 use common::{clip_row, t2};
-
-fn peers() -> Option<PathBuf> {
-    let dir = match std::env::var_os("TAPESTRY_PEERS") {
-        Some(d) => PathBuf::from(d),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/peers"),
-    };
-    if dir.join("reference/softras_image.npy").is_file() {
-        Some(dir)
-    } else {
-        eprintln!(
-            "peer kit not found at {} (set TAPESTRY_PEERS); skipping",
-            dir.display()
-        );
-        None
-    }
-}
 
 /// Two triangles overlapping in the middle whose depth order swaps across the image (the first
 /// tilts in depth through the second), plus a small third one.
@@ -193,7 +176,7 @@ fn cosine(a: &ArrayD<f64>, b: &ArrayD<f64>) -> f64 {
 
 #[test]
 fn matches_softras_reference() {
-    let Some(peers) = peers() else { return };
+    let peers = common::peers();
     let reference = peers.join("reference");
     let scene = Scene::<f64>::load(peers.join("scenes/ico5k.json")).unwrap();
     let r = &scene.desc.raster;

@@ -62,3 +62,20 @@ pub fn smooth_colours(points: &[[f64; 3]]) -> Tensor<f64> {
         0.5 + 0.4 * (3.0 * p[i[1]] + i[1] as f64).sin()
     })
 }
+
+/// The peer kit's scenes and reference arrays, vendored in `tests/data/peers/` (`scenes/`,
+/// `reference/`; made by the kit's `make_reference.py`, see `reference/README.md`). A
+/// different copy can be named with `$TAPESTRY_PEERS`; a missing folder fails the test.
+pub fn peers() -> std::path::PathBuf {
+    let dir = std::env::var_os("TAPESTRY_PEERS")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/peers")
+        });
+    assert!(
+        dir.join("reference/hard_image.npy").is_file() && dir.join("scenes/ico5k.obj").is_file(),
+        "peer reference data missing at {}",
+        dir.display()
+    );
+    dir
+}
