@@ -84,10 +84,10 @@
 //! sweep distance has a half-pixel floor (above), and the image is the hard render at its own
 //! size (the implementation renders at twice the size and averages 2 x 2 blocks by default).
 //!
-//! Only interpolated per-vertex attributes (colours, Gouraud shading evaluated at the
-//! vertices) are supported, like `opendr`: the colour a face would give an uncovered
-//! pixel is taken from its vertex attributes, which cannot describe textures or per-fragment
-//! shaders.
+//! This op takes interpolated per-vertex attributes (colours, Gouraud shading evaluated at the
+//! vertices): the colour a face would give an uncovered pixel is taken from its vertex
+//! attributes. Over the image of any shader or texture, [`crate::boundary::nmr()`] takes it
+//! from the shaded image instead.
 //!
 //! Cost: the outward sweeps dominate, one pass to the image border per scanline crossing of
 //! every face shown at its edge. The sweeps read per-pixel data copied into row-major and

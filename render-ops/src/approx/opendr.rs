@@ -44,9 +44,9 @@
 //! `w` through the perspective divide; triangles with a vertex at `w <= 0` get no position
 //! gradient.
 //!
-//! Only per-vertex colours (interpolated attributes) are supported: custom shaders and
-//! textures, whose appearance the image gradient would also have to describe under motion, are
-//! not supported by this method.
+//! This op takes per-vertex colours (interpolated attributes); over the image of any shader or
+//! texture, [`crate::boundary::opendr()`] adds the boundary part of this derivative and leaves
+//! the interior to the exact chain through the shader.
 //!
 //! Deterministic: contributions are computed per image row in parallel and summed in pixel
 //! order.
