@@ -1,4 +1,4 @@
-#![allow(clippy::needless_range_loop)]
+#![allow(clippy::needless_range_loop, clippy::type_complexity)]
 //! Boundary-gradient methods over any shaded image (`render_ops::boundary`: `deodr`, `opendr`,
 //! `nmr` after nvdiffrast's `antialias`): f64 gradchecks of the ops, agreement with the fused
 //! per-vertex-colour ops, textured and per-pixel Phong-lit scenes through `Scene::render`
