@@ -219,6 +219,51 @@ fn render_phong_and_grad_wrt_texture_and_camera() {
             assert!(g.iter().filter(|&&v| v < 0.0).count() > 150, "{g:?}");
         }
     }
+    // The boundary methods over the textured, Phong-lit scene: render, and every --wrt.
+    let json = std::fs::read_to_string(&scene).unwrap();
+    for method in ["opendr", "nmr", "deodr"] {
+        let sc = dir.join(format!("{method}.json"));
+        std::fs::write(
+            &sc,
+            json.replace(r#""method": "hard""#, &format!(r#""method": "{method}""#)),
+        )
+        .unwrap();
+        let out = tapestry()
+            .arg("render")
+            .arg(&sc)
+            .arg("--out")
+            .arg(dir.join(format!("{method}.png")))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{method}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        for wrt in ["positions", "colors", "texture", "camera"] {
+            let g = dir.join(format!("g_{method}_{wrt}.npy"));
+            let out = tapestry()
+                .arg("grad")
+                .arg(&sc)
+                .arg("--target")
+                .arg(dir.join("target.npy"))
+                .args(["--wrt", wrt, "--out"])
+                .arg(&g)
+                .output()
+                .unwrap();
+            assert!(
+                out.status.success(),
+                "{method} {wrt}: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            let g: tapestry::autodiff::Tensor<f64> =
+                tapestry::render_ops::io::read_npy(&g).unwrap();
+            assert!(
+                g.iter().all(|v| v.is_finite()) && g.iter().any(|&v| v.abs() > 1e-6),
+                "{method} {wrt}"
+            );
+        }
+    }
     // --wrt texture on a scene without a texture: a one-line error.
     let plain = phong_scene(&dir, false);
     let out = tapestry()
@@ -326,7 +371,7 @@ fn bad_files_and_oversized_requests_give_one_line_errors() {
         ),
         "sigmaa",
     );
-    // Per-vertex-colour methods cannot sample a texture.
+    // tf_mesh takes per-vertex colours: it cannot sample a texture.
     tapestry::render_ops::io::write_png(
         dir.join("t.png"),
         &tapestry::autodiff::ndarray::Array3::<f64>::from_elem((2, 2, 3), 0.5),
@@ -337,9 +382,9 @@ fn bad_files_and_oversized_requests_give_one_line_errors() {
             "f.json",
             r#"tri.obj", "texture": "t.png"#,
             small,
-            r#"{"method": "nmr"}"#,
+            r#"{"method": "tf_mesh"}"#,
         ),
-        "raster.method 'nmr' takes per-vertex colours",
+        "raster.method 'tf_mesh' takes per-vertex colours",
     );
     // Too large for memory: refused before allocating (a 4096^2 image at 16 faces per pixel is
     // 268M fragment slots; 65536^2 pixels is past the packed layout's pixel limit).

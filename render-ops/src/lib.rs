@@ -9,6 +9,7 @@
 )]
 pub mod approx;
 pub mod blend;
+pub mod boundary;
 pub mod camera;
 pub mod error;
 pub mod interpolate;

@@ -9,9 +9,10 @@ use ndarray::{ArrayD, IxDyn};
 
 use crate::approx::{deodr, nmr, opendr, tf_mesh, ApproxSettings};
 use crate::blend::blend_hard;
+use crate::boundary::{self, BoundarySettings};
 use crate::error::RenderError;
 use crate::raster::RasterSettings;
-use crate::rasterize::{rasterize, render_attributes};
+use crate::rasterize::{rasterize, render_attributes, Rasterized};
 use crate::scene::{Method, Scene};
 use crate::shade::stage::{texture_rgb, SceneShading, SCENE_SAMPLER};
 use crate::shade::{fragment_inputs, vertex_normals, MeshAttributes};
@@ -108,11 +109,14 @@ impl<T: Real> Scene<T> {
     /// Renders the scene: an RGBA image [H, W, 4] (RGB composited over the background, alpha =
     /// coverage) as a tape variable.
     ///
-    /// Methods `tf_mesh`, `opendr` and `nmr` render the hard image of per-vertex colours
-    /// (lighting evaluated at the vertices, see [`Scene::vertex_colors`]; unlit scenes give
-    /// exactly the image of method `hard`) with their approximate gradients; `deodr` overdraws
-    /// that image's silhouette edges with a ramp `overdraw_px` wide and differentiates it
-    /// exactly ([`crate::approx`]). Every method of [`Method::ALL`] is available.
+    /// Methods `opendr`, `nmr` and `deodr` over unlit, untextured scenes use the fused ops of
+    /// [`crate::approx`] over the vertex colours (the image of method `hard` with approximate
+    /// boundary gradients, or for `deodr` that image's silhouette edges overdrawn with a ramp
+    /// `overdraw_px` wide, differentiated exactly). Lit or textured scenes are shaded per
+    /// fragment as by method `hard` and then go through the method's op of
+    /// [`crate::boundary`] over the shaded image. `tf_mesh` renders per-vertex colours only
+    /// (lighting evaluated at the vertices, see [`Scene::vertex_colors`]). Every method of
+    /// [`Method::ALL`] is available.
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
         let method = self.desc.raster.method;
         // NaN or Inf in an input would otherwise reach the image silently (colours), be
@@ -164,10 +168,39 @@ impl<T: Real> Scene<T> {
             method,
             Method::TfMesh | Method::OpenDr | Method::Nmr | Method::Deodr
         ) {
-            // The hard forward over per-vertex (Gouraud-shaded) colours, with approximate
-            // boundary gradients, or DEODR's edge overdraw and its exact gradient
-            // (render_ops::approx). Textures are rejected by vertex_colors.
             let r = &self.desc.raster;
+            let lit = SceneShading::new(
+                vars.positions.tape(),
+                &self.desc.material,
+                &self.desc.lights,
+            )
+            .is_lit();
+            if method != Method::TfMesh && (lit || vars.texture.is_some()) {
+                // Shaded per fragment as by method `hard` (texture, per-pixel lighting), then
+                // the method's boundary op over the shaded image (render_ops::boundary).
+                let shaded = self.shade_fragments(vars, clip, kd)?;
+                let Some((raster, rclip)) = shaded.raster else {
+                    return Err(RenderError::Unsupported(
+                        "a lit or textured scene is shaded after rasterization".into(),
+                    ));
+                };
+                return match method {
+                    Method::OpenDr => boundary::opendr(shaded.image, &raster, rclip),
+                    Method::Nmr => boundary::nmr(shaded.image, &raster, rclip),
+                    _ => boundary::deodr(
+                        shaded.image,
+                        &raster,
+                        rclip,
+                        &BoundarySettings {
+                            overdraw_px: r.overdraw_px,
+                        },
+                    ),
+                };
+            }
+            // The fast path: the hard forward over per-vertex colours with approximate boundary
+            // gradients, or DEODR's edge overdraw and its exact gradient, fused
+            // (render_ops::approx); for tf_mesh also over Gouraud-shaded colours. Textures are
+            // rejected by vertex_colors.
             let mut s = ApproxSettings::new(
                 self.desc.image.width as usize,
                 self.desc.image.height as usize,
@@ -247,7 +280,8 @@ impl<T: Real> Scene<T> {
         if vars.texture.is_some() {
             return Err(RenderError::Unsupported(format!(
                 "textures are sampled per fragment: raster.method '{}' takes per-vertex \
-                 colours; use method 'hard' for textured scenes",
+                 colours; use method 'hard', 'opendr', 'nmr', 'deodr' or 'dibr' for textured \
+                 scenes",
                 self.desc.raster.method.name()
             )));
         }
@@ -279,6 +313,19 @@ impl<T: Real> Scene<T> {
         clip: Var<'t, T>,
         kd: Var<'t, T>,
     ) -> Result<Var<'t, T>, RenderError> {
+        Ok(self.shade_fragments(vars, clip, kd)?.image)
+    }
+
+    /// The image of [`Scene::render_hard`], with the rasterization it was drawn from and the
+    /// clip positions of the vertices it rasterized (those of the uv-split mesh for a textured
+    /// scene); no rasterization for unlit, untextured scenes drawn by
+    /// [`render_attributes`].
+    fn shade_fragments<'t>(
+        &self,
+        vars: &SceneVars<'t, T>,
+        clip: Var<'t, T>,
+        kd: Var<'t, T>,
+    ) -> Result<Shaded<'t, T>, RenderError> {
         let t = vars.positions.tape();
         let shading = SceneShading::new(t, &self.desc.material, &self.desc.lights);
         let settings = self.raster_settings();
@@ -287,7 +334,11 @@ impl<T: Real> Scene<T> {
             let faces = Arc::new(self.mesh.faces.clone());
             if !shading.is_lit() {
                 // Vertex colours: in one pass when no gradient is asked for.
-                return render_attributes(clip, vars.colors * kd, faces, &settings, &bg);
+                let image = render_attributes(clip, vars.colors * kd, faces, &settings, &bg)?;
+                return Ok(Shaded {
+                    image,
+                    raster: None,
+                });
             }
             let r = rasterize(clip, faces.clone(), &settings)?;
             let mesh = MeshAttributes::new(vars.positions)
@@ -296,7 +347,11 @@ impl<T: Real> Scene<T> {
             let f = fragment_inputs(&r, &mesh, self.eye(vars))?;
             let albedo = f.attribute("color").expect("set above") * kd;
             let color = shading.apply(f.position, f.normal, albedo, f.eye)?;
-            return blend_hard(color, &r.fragments, &bg);
+            let image = blend_hard(color, &r.fragments, &bg)?;
+            return Ok(Shaded {
+                image,
+                raster: Some((r, clip)),
+            });
         };
         if !self.mesh.has_uvs() {
             return Err(RenderError::Unsupported(format!(
@@ -312,7 +367,8 @@ impl<T: Real> Scene<T> {
             unified.mesh.uvs.iter().flatten().copied().collect(),
         )
         .expect("v x 2");
-        let r = rasterize(clip.index_select(0, &index), faces, &settings)?;
+        let rclip = clip.index_select(0, &index);
+        let r = rasterize(rclip, faces, &settings)?;
         let normals = vertex_normals(vars.positions, &Arc::new(self.mesh.faces.clone()));
         let mesh = MeshAttributes::new(vars.positions.index_select(0, &index))
             .with_normals(normals.index_select(0, &index))
@@ -322,6 +378,17 @@ impl<T: Real> Scene<T> {
         let tex = texture_rgb(f.sample(&Texture::new(texels, SCENE_SAMPLER)))?;
         let albedo = f.attribute("color").expect("set above") * kd * tex;
         let color = shading.apply(f.position, f.normal, albedo, f.eye)?;
-        blend_hard(color, &r.fragments, &bg)
+        let image = blend_hard(color, &r.fragments, &bg)?;
+        Ok(Shaded {
+            image,
+            raster: Some((r, rclip)),
+        })
     }
+}
+
+/// A hard render shaded per fragment: the image `[H, W, 4]`, and when drawn through
+/// [`rasterize`], the rasterization and the clip positions `[V, 4]` it was drawn from.
+struct Shaded<'t, T: Real> {
+    image: Var<'t, T>,
+    raster: Option<(Rasterized<'t, T>, Var<'t, T>)>,
 }

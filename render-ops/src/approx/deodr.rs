@@ -118,36 +118,38 @@ pub fn deodr<'t, T: Real>(
 
 /// One silhouette edge in screen space.
 #[derive(Clone, Debug)]
-struct Edge {
+pub(crate) struct Edge {
     /// Vertex indices of its endpoints.
-    v: [u32; 2],
+    pub v: [u32; 2],
+    /// The (front) face it belongs to.
+    pub face: u32,
     /// Endpoints `(col, row)`.
-    p0: [f64; 2],
-    e: [f64; 2],
+    pub p0: [f64; 2],
+    pub e: [f64; 2],
     /// `|e|^2` and `|e|`.
-    len2: f64,
-    len: f64,
+    pub len2: f64,
+    pub len: f64,
     /// Unit normal pointing away from the face (the side that is overdrawn).
-    n: [f64; 2],
+    pub n: [f64; 2],
     /// `+1` or `-1`: `n = sgn (-e_y, e_x) / |e|`.
-    sgn: f64,
+    pub sgn: f64,
     /// NDC depth at the endpoints.
-    z: [f64; 2],
+    pub z: [f64; 2],
     /// `1 / w` at the endpoints.
-    q: [f64; 2],
+    pub q: [f64; 2],
 }
 
 /// The silhouette edges in drawing order, and for each image row the edges whose ramp may
 /// reach it (in drawing order).
-struct EdgeSet {
-    edges: Vec<Edge>,
+pub(crate) struct EdgeSet {
+    pub edges: Vec<Edge>,
     /// CSR over rows: `row_edges[row_start[r]..row_start[r + 1]]`.
     row_start: Vec<usize>,
     row_edges: Vec<u32>,
 }
 
 impl EdgeSet {
-    fn empty(height: usize) -> Self {
+    pub fn empty(height: usize) -> Self {
         EdgeSet {
             edges: Vec::new(),
             row_start: vec![0; height + 1],
@@ -155,14 +157,14 @@ impl EdgeSet {
         }
     }
 
-    fn row(&self, r: usize) -> &[u32] {
+    pub fn row(&self, r: usize) -> &[u32] {
         &self.row_edges[self.row_start[r]..self.row_start[r + 1]]
     }
 }
 
 /// Finds the silhouette edges (exactly one front-facing face among those sharing the edge, no
 /// face with a vertex at `w <= 0`), orders them as DEODR draws them and bins them by row.
-fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet {
+pub(crate) fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet {
     // Per face: front-facing (counter-clockwise in NDC, i.e. clockwise in pixel coordinates
     // whose rows go down), or invalid (a vertex at w <= 0 or not finite).
     #[derive(Clone, Copy, PartialEq)]
@@ -294,6 +296,7 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
         rows.push(Some((r0 as usize, r1 as usize)));
         edges.push(Edge {
             v: [a, b],
+            face: fk / 3,
             p0,
             e,
             len2,
@@ -315,7 +318,7 @@ fn silhouette_edges(screen: &Screen, faces: &[[u32; 3]], sigma: f64) -> EdgeSet 
 /// Where an edge's ramp covers pixel centre `(x, row)`: its coordinates `t` along the edge and
 /// `s` across it.
 #[inline]
-fn edge_coords(e: &Edge, x: f64, row: f64) -> (f64, f64) {
+pub(crate) fn edge_coords(e: &Edge, x: f64, row: f64) -> (f64, f64) {
     let d = [x - e.p0[0], row - e.p0[1]];
     let t = (e.e[0] * d[0] + e.e[1] * d[1]) / e.len2;
     let s = e.n[0] * d[0] + e.n[1] * d[1];
@@ -324,7 +327,7 @@ fn edge_coords(e: &Edge, x: f64, row: f64) -> (f64, f64) {
 
 /// The columns of row `row` whose centres may lie in the ramp of `e` (`0 <= t <= 1`,
 /// `0 <= s <= sigma`), clamped to the image; the exact test is made per pixel.
-fn column_range(e: &Edge, row: f64, sigma: f64, width: usize) -> Option<(usize, usize)> {
+pub(crate) fn column_range(e: &Edge, row: f64, sigma: f64, width: usize) -> Option<(usize, usize)> {
     let (mut lo, mut hi) = (0.0f64, width as f64 - 1.0);
     // t(x) = (e_x (x - x0) + e_y (row - y0)) / len2 and s(x) = n_x (x - x0) + n_y (row - y0):
     // each is affine in x; keep the x where it lies in its interval.

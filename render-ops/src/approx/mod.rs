@@ -30,9 +30,10 @@
 //! render (`dI_p / dA_k = b_k` on covered pixels). Position gradients go to `x`, `y` and `w` of
 //! the clip coordinates (`z` only sets visibility and gets none).
 //!
-//! Only interpolated per-vertex attributes are supported: the methods model how the image
-//! moves with the geometry, which they can do for attributes that move with the surface, not
-//! for arbitrary per-fragment shaders or textures.
+//! These fused ops take interpolated per-vertex attributes only: they are the fast path for
+//! per-vertex colours. For textures and per-fragment shaders, [`crate::boundary`] has `deodr`,
+//! `opendr` and `nmr` as ops over any shaded image (the composed path, which
+//! [`crate::pipeline`] takes for lit or textured scenes).
 //!
 //! All work is in `f64` whatever the scalar. The exact part shared by all four (attribute
 //! gradients and the interior, barycentric position gradient of the hard render) is one pass

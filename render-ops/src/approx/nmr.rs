@@ -84,10 +84,10 @@
 //! sweep distance has a half-pixel floor (above), and the image is the hard render at its own
 //! size (the implementation renders at twice the size and averages 2 x 2 blocks by default).
 //!
-//! Only interpolated per-vertex attributes (colours, Gouraud shading evaluated at the
-//! vertices) are supported, like `opendr`: the colour a face would give an uncovered
-//! pixel is taken from its vertex attributes, which cannot describe textures or per-fragment
-//! shaders.
+//! This op takes interpolated per-vertex attributes (colours, Gouraud shading evaluated at the
+//! vertices): the colour a face would give an uncovered pixel is taken from its vertex
+//! attributes. Over the image of any shader or texture, [`crate::boundary::nmr()`] takes it
+//! from the shaded image instead.
 //!
 //! Cost: the outward sweeps dominate, one pass to the image border per scanline crossing of
 //! every face shown at its edge. The sweeps read per-pixel data copied into row-major and
@@ -107,6 +107,7 @@ use rayon::prelude::*;
 
 use super::{bin_by_lines, depth_buffer, edge_weights, ApproxSettings, HardRender, Screen};
 use crate::error::RenderError;
+use crate::raster::Fragments;
 
 /// The smallest `|x - x_c|` (pixels) a pixel's term is divided by: a pixel centre within half
 /// a pixel of the moving edge (a pixel the edge passes through) counts as half a pixel from
@@ -147,8 +148,9 @@ struct Maps<'a> {
     nc: usize,
     /// The rendered image, `[H * W * nc]`.
     img: &'a [f64],
-    /// Vertex attributes `[V * C]`.
-    attrs: &'a [f64],
+    /// Vertex attributes `[V * C]`; `None`: the outward sweep's colour after is the shaded
+    /// colour of the face's pixel just inside the edge (`crate::boundary::nmr`).
+    attrs: Option<&'a [f64]>,
     /// The sweeps' per-pixel data laid out along their scanlines, so that a sweep reads memory
     /// in order: rows (`[H][W]`) for x-moves, columns (`[W][H]`) for y-moves. Per pixel,
     /// `lane_stride(nc)` values: the face shown ([`NO_FACE`] where uncovered), the NDC
@@ -288,16 +290,22 @@ fn gated_sum<'a>(
     sum
 }
 
-impl<T: Real> NmrOp<T> {
+/// The sweeps of one render: the faces drawn and the interpolation mode.
+pub(crate) struct Sweeper<'a> {
+    pub faces: &'a [[u32; 3]],
+    pub persp: bool,
+}
+
+impl Sweeper<'_> {
     /// Bins the faces marked in `shown` by the scanlines of `axis` they span.
     fn bins(&self, screen: &Screen, shown: &[bool], axis: usize, nu: usize) -> ScanlineBins {
-        let ranges: Vec<Option<(usize, usize)>> = (0..self.hard.faces.len())
+        let ranges: Vec<Option<(usize, usize)>> = (0..self.faces.len())
             .into_par_iter()
             .map(|fi| {
                 if !shown[fi] {
                     return None;
                 }
-                let (v, _) = screen.triangle(self.hard.faces[fi])?;
+                let (v, _) = screen.triangle(self.faces[fi])?;
                 scanline_range(&along(&v, axis), nu)
             })
             .collect();
@@ -319,7 +327,7 @@ impl<T: Real> NmrOp<T> {
         after: &mut [f64],
         out: &mut Vec<(u32, f64)>,
     ) {
-        let f = self.hard.faces[fi as usize];
+        let f = self.faces[fi as usize];
         let Some((v, _)) = screen.triangle(f) else {
             return;
         };
@@ -403,15 +411,17 @@ impl<T: Real> NmrOp<T> {
         // Outward: pixels the face takes as the edge sweeps out, if it shows inside the edge.
         if in_image(s_in) && in_image(s_out) && lane[s_in as usize * stride] == fi {
             let (a, b) = (f[c.k] as usize, f[(c.k + 1) % 3] as usize);
-            let (wt, _) = edge_weights(
-                [1.0 / screen.w[a], 1.0 / screen.w[b]],
-                c.t,
-                self.hard.settings.perspective_correct,
-            );
-            for ch in 0..attrs_c {
-                after[ch] = wt[0] * m.attrs[a * attrs_c + ch] + wt[1] * m.attrs[b * attrs_c + ch];
+            if let Some(attrs) = m.attrs {
+                let (wt, _) = edge_weights([1.0 / screen.w[a], 1.0 / screen.w[b]], c.t, self.persp);
+                for ch in 0..attrs_c {
+                    after[ch] = wt[0] * attrs[a * attrs_c + ch] + wt[1] * attrs[b * attrs_c + ch];
+                }
+                after[attrs_c] = 1.0;
+            } else {
+                // The face's shaded colour at its pixel just inside the edge.
+                let pi = pix(s_in as usize);
+                after.copy_from_slice(&m.img[pi * nc..(pi + 1) * nc]);
             }
-            after[attrs_c] = 1.0;
             let za = screen.clip[a][2] / screen.w[a];
             let zb = screen.clip[b][2] / screen.w[b];
             let z = za + c.t * (zb - za);
@@ -458,54 +468,74 @@ impl<T: Real> Op<T> for NmrOp<T> {
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let fr = &self.hard.fragments;
+        let sw = Sweeper {
+            faces: &self.hard.faces,
+            persp: self.hard.settings.perspective_correct,
+        };
         self.hard.backward("nmr", ctx, |b| {
-            let face_of: Vec<u32> = (0..fr.num_pixels())
-                .map(|p| fr.nearest(p).map_or(NO_FACE, |f| f.face))
-                .collect();
-            // Faces shown at no pixel have no edge to sweep from and no pixel to uncover.
-            let mut shown = vec![false; self.hard.faces.len()];
-            for &f in &face_of {
-                if f != NO_FACE {
-                    shown[f as usize] = true;
-                }
-            }
-            let nc = self.hard.background.len() + 1;
-            let (w, h) = (fr.width, fr.height);
-            let zbuf = depth_buffer(fr);
-            let maps = Maps {
-                width: w,
-                height: h,
-                nc,
-                img: &b.img,
-                attrs: &b.attrs,
-                lanes: lanes(w, h, nc, &face_of, &zbuf, &b.g, &b.img),
-            };
-            // Per axis, the scanlines in parallel (each reads its lane of `maps` for all the
-            // faces that reach it, in face order), reduced in scanline order.
-            let mut acc = vec![[0.0f64; 2]; b.screen.px.len()];
-            for axis in 0..2 {
-                let nu = if axis == 0 { h } else { w };
-                let bins = self.bins(&b.screen, &shown, axis, nu);
-                let per_lane: Vec<Vec<(u32, f64)>> = (0..nu)
-                    .into_par_iter()
-                    .map_init(
-                        || vec![0.0; nc],
-                        |after, ui| {
-                            let mut out = Vec::new();
-                            for &fi in bins.lane(ui) {
-                                self.face_scanline(&b.screen, &maps, fi, axis, ui, after, &mut out);
-                            }
-                            out
-                        },
-                    )
-                    .collect();
-                for lane in per_lane {
-                    for (v, g) in lane {
-                        acc[v as usize][axis] += g;
-                    }
-                }
-            }
-            b.screen.px_grads_to_clip(&acc)
+            sw.boundary(fr, &b.screen, &b.img, &b.g, Some(&b.attrs))
         })
+    }
+}
+
+impl Sweeper<'_> {
+    /// NMR's edge term: per-vertex clip gradients from the sweeps over the rendered image
+    /// `img` (`[H * W * nc]`) with `dL/dI` `g`, the outward colours from `attrs` (per-vertex,
+    /// `[V * (nc - 1)]`) or, when `None`, from the image.
+    pub(crate) fn boundary<T: Real>(
+        &self,
+        fr: &Fragments<T>,
+        screen: &Screen,
+        img: &[f64],
+        g: &[f64],
+        attrs: Option<&[f64]>,
+    ) -> Vec<[f64; 4]> {
+        let nc = img.len() / fr.num_pixels().max(1);
+        let face_of: Vec<u32> = (0..fr.num_pixels())
+            .map(|p| fr.nearest(p).map_or(NO_FACE, |f| f.face))
+            .collect();
+        // Faces shown at no pixel have no edge to sweep from and no pixel to uncover.
+        let mut shown = vec![false; self.faces.len()];
+        for &f in &face_of {
+            if f != NO_FACE {
+                shown[f as usize] = true;
+            }
+        }
+        let (w, h) = (fr.width, fr.height);
+        let zbuf = depth_buffer(fr);
+        let maps = Maps {
+            width: w,
+            height: h,
+            nc,
+            img,
+            attrs,
+            lanes: lanes(w, h, nc, &face_of, &zbuf, g, img),
+        };
+        // Per axis, the scanlines in parallel (each reads its lane of `maps` for all the
+        // faces that reach it, in face order), reduced in scanline order.
+        let mut acc = vec![[0.0f64; 2]; screen.px.len()];
+        for axis in 0..2 {
+            let nu = if axis == 0 { h } else { w };
+            let bins = self.bins(screen, &shown, axis, nu);
+            let per_lane: Vec<Vec<(u32, f64)>> = (0..nu)
+                .into_par_iter()
+                .map_init(
+                    || vec![0.0; nc],
+                    |after, ui| {
+                        let mut out = Vec::new();
+                        for &fi in bins.lane(ui) {
+                            self.face_scanline(screen, &maps, fi, axis, ui, after, &mut out);
+                        }
+                        out
+                    },
+                )
+                .collect();
+            for lane in per_lane {
+                for (v, g) in lane {
+                    acc[v as usize][axis] += g;
+                }
+            }
+        }
+        screen.px_grads_to_clip(&acc)
     }
 }

@@ -44,9 +44,9 @@
 //! `w` through the perspective divide; triangles with a vertex at `w <= 0` get no position
 //! gradient.
 //!
-//! Only per-vertex colours (interpolated attributes) are supported: custom shaders and
-//! textures, whose appearance the image gradient would also have to describe under motion, are
-//! not supported by this method.
+//! This op takes per-vertex colours (interpolated attributes); over the image of any shader or
+//! texture, [`crate::boundary::opendr()`] adds the boundary part of this derivative and leaves
+//! the interior to the exact chain through the shader.
 //!
 //! Deterministic: contributions are computed per image row in parallel and summed in pixel
 //! order.
@@ -88,19 +88,45 @@ struct OpenDrOp<T: Real> {
 
 /// What the backward needs per pixel: its nearest face and NDC depth.
 #[derive(Clone, Copy)]
-struct Px {
-    face: Option<u32>,
-    depth: f64,
+pub(crate) struct Px {
+    pub face: Option<u32>,
+    pub depth: f64,
 }
 
-impl<T: Real> OpenDrOp<T> {
+impl Px {
+    /// Per pixel of `fr`, its nearest face and depth.
+    pub fn of<T: Real>(fr: &crate::raster::Fragments<T>) -> Vec<Px> {
+        (0..fr.num_pixels())
+            .map(|p| match fr.nearest(p) {
+                Some(f) => Px {
+                    face: Some(f.face),
+                    depth: f.depth.to_f64c(),
+                },
+                None => Px {
+                    face: None,
+                    depth: f64::INFINITY,
+                },
+            })
+            .collect()
+    }
+}
+
+/// OpenDR's derivative over a rendered image: the faces drawn, and whether only the halves
+/// across an occlusion boundary count (`boundary_only`: the interior, smooth part is left to
+/// the exact chain through the shader, `crate::boundary::opendr`).
+pub(crate) struct ImageGrad<'a> {
+    pub faces: &'a [[u32; 3]],
+    pub boundary_only: bool,
+}
+
+impl ImageGrad<'_> {
     /// Whether an occlusion boundary separates pixels `a` and `b`; if so, the occluding face.
     fn boundary(&self, a: Px, b: Px) -> Option<u32> {
         match (a.face, b.face) {
             (None, None) => None,
             (Some(f), None) | (None, Some(f)) => Some(f),
             (Some(fa), Some(fb)) => {
-                let (va, vb) = (self.hard.faces[fa as usize], self.hard.faces[fb as usize]);
+                let (va, vb) = (self.faces[fa as usize], self.faces[fb as usize]);
                 if fa == fb || va.iter().any(|i| vb.contains(i)) {
                     None
                 } else if b.depth < a.depth {
@@ -112,18 +138,20 @@ impl<T: Real> OpenDrOp<T> {
         }
     }
 
-    /// Contributions `(vertex, d/d(col, row))` of the pixels of one image row.
-    fn row(
+    /// Contributions `(vertex, d/d(col, row))` of the pixels of one image row (`nc` values a
+    /// pixel in `img` and `g`).
+    #[allow(clippy::too_many_arguments)]
+    pub fn row(
         &self,
         screen: &Screen,
         px: &[Px],
         img: &[f64],
         g: &[f64],
+        nc: usize,
         row: usize,
         out: &mut Vec<(u32, [f64; 2])>,
     ) {
-        let (w, h) = (self.hard.fragments.width, self.hard.fragments.height);
-        let nc = self.hard.background.len() + 1;
+        let (w, h) = (screen.width, screen.height);
         for col in 0..w {
             let p = row * w + col;
             let gp = &g[p * nc..(p + 1) * nc];
@@ -152,12 +180,13 @@ impl<T: Real> OpenDrOp<T> {
                     }
                     let face = match self.boundary(px[p], px[q]) {
                         Some(f) => f,
+                        None if self.boundary_only => continue,
                         None => match px[p].face {
                             Some(f) => f,
                             None => continue,
                         },
                     };
-                    let f = self.hard.faces[face as usize];
+                    let f = self.faces[face as usize];
                     let Some((v, area2)) = screen.triangle(f) else {
                         continue;
                     };
@@ -211,26 +240,20 @@ impl<T: Real> Op<T> for OpenDrOp<T> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None, g_attr]);
         }
-        let px: Vec<Px> = (0..fr.num_pixels())
-            .map(|p| match fr.nearest(p) {
-                Some(f) => Px {
-                    face: Some(f.face),
-                    depth: f.depth.to_f64c(),
-                },
-                None => Px {
-                    face: None,
-                    depth: f64::INFINITY,
-                },
-            })
-            .collect();
+        let px = Px::of(fr);
         let img: Vec<f64> = ctx.outputs[0].iter().map(|x| x.to_f64c()).collect();
         let g = grad_f64(ctx);
         let screen = Screen::new(ctx.inputs[0], fr.width, fr.height);
+        let nc = self.hard.background.len() + 1;
+        let ig = ImageGrad {
+            faces: &self.hard.faces,
+            boundary_only: false,
+        };
         let rows: Vec<Vec<(u32, [f64; 2])>> = (0..fr.height)
             .into_par_iter()
             .map(|row| {
                 let mut out = Vec::new();
-                self.row(&screen, &px, &img, &g, row, &mut out);
+                ig.row(&screen, &px, &img, &g, nc, row, &mut out);
                 out
             })
             .collect();
