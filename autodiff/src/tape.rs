@@ -637,16 +637,75 @@ impl<T: Real> Tape<T> {
         };
         match crate::fused::plan(dag, self.fuse_chunk.get(), self.anomaly.get()) {
             Some(op) => self.record_into(op, &ext_ids, &targets),
-            None if targets.len() > 1 => {
-                for t in targets {
-                    self.materialize_ids(&[t]);
-                }
-            }
+            None if targets.len() > 1 => self.materialize_groups(&targets),
             None => {
                 for s in order {
                     self.eager_node(s);
                 }
             }
+        }
+    }
+
+    /// Computes targets that do not fit one fused op: grouped by their number of rows, the
+    /// pending nodes the groups share computed first (so that none is computed twice), then
+    /// each group, in the order of their last targets.
+    fn materialize_groups(&self, targets: &[u32]) {
+        let (groups, shared) = {
+            let inner = self.inner.borrow();
+            let rows = |t: u32| {
+                let p = inner.slots[t as usize].pending.expect("pending") as usize;
+                inner.lazy[p].shape.first().copied()
+            };
+            let mut groups: Vec<(Option<usize>, Vec<u32>)> = Vec::new();
+            for &t in targets {
+                let r = rows(t);
+                match groups.iter_mut().find(|g| g.0 == r) {
+                    Some(g) => g.1.push(t),
+                    None => groups.push((r, vec![t])),
+                }
+            }
+            let mut count: HashMap<u32, usize> = HashMap::new();
+            for (_, g) in &groups {
+                let mut seen: HashMap<u32, ()> = HashMap::new();
+                let mut stack = g.clone();
+                while let Some(s) = stack.pop() {
+                    if seen.insert(s, ()).is_some() {
+                        continue;
+                    }
+                    *count.entry(s).or_default() += 1;
+                    let p = inner.slots[s as usize].pending.expect("pending") as usize;
+                    for a in &inner.lazy[p].args {
+                        if let LazyArg::Slot(i) = *a {
+                            if inner.slots[i as usize].pending.is_some() {
+                                stack.push(i);
+                            }
+                        }
+                    }
+                }
+            }
+            let mut shared: Vec<u32> = count
+                .into_iter()
+                .filter(|&(_, c)| c > 1)
+                .map(|(s, _)| s)
+                .collect();
+            shared.sort_unstable();
+            let mut groups: Vec<Vec<u32>> = groups.into_iter().map(|g| g.1).collect();
+            groups.sort_by_key(|g| g.iter().max().copied());
+            (groups, shared)
+        };
+        if groups.len() == 1 {
+            // Same rows, yet no plan: each target alone (the eager fallback when that fails
+            // too computes the shared nodes once).
+            for &t in targets {
+                self.materialize_ids(&[t]);
+            }
+            return;
+        }
+        if !shared.is_empty() {
+            self.materialize_ids(&shared);
+        }
+        for g in groups {
+            self.materialize_ids(&g);
         }
     }
 

@@ -166,17 +166,29 @@ fn bits<T: Real>(t: &Tensor<T>) -> Vec<u64> {
     t.iter().map(|v| v.to_f64c().to_bits()).collect()
 }
 
+/// Asserts equal bits, reporting the first difference.
+fn same_bits<T: Real>(a: &Tensor<T>, b: &Tensor<T>, what: &str) {
+    assert_eq!(a.shape(), b.shape(), "{what}");
+    if let Some((i, (x, y))) = a
+        .iter()
+        .zip(b.iter())
+        .enumerate()
+        .find(|(_, (x, y))| x.to_f64c().to_bits() != y.to_f64c().to_bits())
+    {
+        panic!("{what} ({}): element {i}: {x:?} vs {y:?}", T::NAME);
+    }
+}
+
 /// Values bit for bit; gradients of row-varying inputs bit for bit, of row-invariant ones
 /// within `rtol` of the sum of magnitudes (checked against the eager gradient's scale).
 fn compare<T: Real>(a: &Run<T>, b: &Run<T>, rtol: f64) {
     assert_eq!(a.values.len(), b.values.len());
     for (x, y) in a.values.iter().zip(&b.values) {
-        assert_eq!(x.shape(), y.shape());
-        assert_eq!(bits(x), bits(y), "values differ");
+        same_bits(x, y, "values");
     }
     for (k, (x, y)) in a.grads.iter().zip(&b.grads).enumerate() {
         if input_shapes()[k].first() == Some(&N) {
-            assert_eq!(bits(x), bits(y), "gradient of row input {k} differs");
+            same_bits(x, y, &format!("gradient of row input {k}"));
         } else {
             for (&u, &v) in x.iter().zip(y.iter()) {
                 let (u, v) = (u.to_f64c(), v.to_f64c());
