@@ -21,6 +21,10 @@
 //! in one sequence: the two orders differ by rounding only (for `n` rows, within the usual
 //! `n eps` relative bound of a sum; the tests use `1e-12` relative in f64).
 
+// Kernels index re-sliced slices of one length (`&a[..n]`): bounds checks vanish and the
+// loops vectorise.
+#![allow(clippy::needless_range_loop)]
+
 use std::borrow::Cow;
 
 use rayon::prelude::*;
@@ -769,6 +773,7 @@ impl<T: Real> FusedOp<T> {
 
     /// The operand of argument `(src, acc)` of a node with local length `n`: expanded into
     /// `buf` when the access is a general broadcast.
+    #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn operand<'a>(
         &self,
