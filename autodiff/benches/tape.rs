@@ -17,6 +17,7 @@
 //!     4 MB buffer 116 times (116 x (read + write) = 232 passes) around a 256 MB ring of
 //!     buffers, larger than the last-level cache, so that it streams from memory as the chain
 //!     (whose 50 saved activations take 200 MB) does.
+//!     `fused_forward_backward_1e6_f32` runs the chain inside `Tape::fused` (one fused op).
 //! (c) `3dmm`: `y = mean + B a` with V = 35,000 vertices, B = [3V, K] = [105000, 199] f32 (a
 //!     constant shared with the tape, not copied), K = 199, loss `sum((y - target)^2)` (as
 //!     PyTorch's benchmark) and its gradient with respect to `a`. The memory bound is reading
@@ -116,6 +117,17 @@ fn bench_chain50(c: &mut Criterion) {
             let tape = Tape::<f32>::new();
             let x = tape.leaf(x0.clone());
             let loss = chain50(x).sum();
+            let grads = tape.backward(loss).unwrap();
+            black_box(grads.get(x).map(|t| t[[0]]))
+        })
+    });
+    // The same chain inside `Tape::fused`: one fused op, evaluated in cache-sized chunks
+    // (forward reads x and writes y; backward recomputes the chunk and writes dx).
+    g.bench_function("fused_forward_backward_1e6_f32", |b| {
+        b.iter(|| {
+            let tape = Tape::<f32>::new();
+            let x = tape.leaf(x0.clone());
+            let loss = tape.fused(|| chain50(x)).sum();
             let grads = tape.backward(loss).unwrap();
             black_box(grads.get(x).map(|t| t[[0]]))
         })

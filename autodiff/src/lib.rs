@@ -14,6 +14,7 @@
 
 pub mod active_wait;
 pub mod error;
+pub mod fused;
 pub mod gradcheck;
 mod malloc;
 pub use malloc::tune as tune_malloc;

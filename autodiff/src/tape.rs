@@ -10,6 +10,7 @@
 //! never panicking and never hiding the failing op.
 
 use std::cell::{Cell, RefCell};
+use std::collections::HashMap;
 use std::fmt;
 use std::sync::Arc;
 
@@ -17,6 +18,10 @@ use ndarray::{ArrayD, IxDyn};
 use smallvec::SmallVec;
 
 use crate::error::{AutodiffError, Pass, Result};
+use crate::fused::{Arg, Dag, DagNode, Kind, DEFAULT_CHUNK};
+use crate::ops::elementwise::{BinaryOp, MulSelfOp, UnaryOp, WhereOp};
+use crate::ops::reduce::SumOp;
+use crate::ops::vector::NormalizeOp;
 use crate::tensor::{all_finite, scalar, Tensor};
 use crate::Real;
 
@@ -70,6 +75,24 @@ struct Slot<T: Real> {
     poisoned: bool,
     /// The op (index into `ops`) that produced this variable; `None` for leaves and constants.
     producer: Option<u32>,
+    /// A node recorded in a fused region and not computed yet (index into `Inner::lazy`);
+    /// `value` is then a placeholder.
+    pending: Option<u32>,
+}
+
+/// An argument of a recorded (lazy) node.
+#[derive(Clone, Copy)]
+enum LazyArg {
+    Slot(u32),
+    /// A `where` mask (index into `Inner::masks`).
+    Mask(u32),
+}
+
+/// An elementwise op recorded inside [`Tape::fused`] and not computed yet.
+struct LazyNode<T> {
+    kind: Kind<T>,
+    args: SmallVec<[LazyArg; 3]>,
+    shape: Vec<usize>,
 }
 
 struct Record<T: Real> {
@@ -82,6 +105,8 @@ struct Inner<T: Real> {
     slots: Vec<Slot<T>>,
     ops: Vec<Record<T>>,
     error: Option<AutodiffError>,
+    lazy: Vec<LazyNode<T>>,
+    masks: Vec<Arc<ArrayD<bool>>>,
 }
 
 /// An arena of variables and the ops that produced them.
@@ -89,6 +114,8 @@ pub struct Tape<T: Real> {
     inner: RefCell<Inner<T>>,
     no_grad_depth: Cell<u32>,
     anomaly: Cell<bool>,
+    fusing: Cell<u32>,
+    fuse_chunk: Cell<usize>,
 }
 
 impl<T: Real> Default for Tape<T> {
@@ -157,9 +184,13 @@ impl<T: Real> Tape<T> {
                 slots: Vec::new(),
                 ops: Vec::new(),
                 error: None,
+                lazy: Vec::new(),
+                masks: Vec::new(),
             }),
             no_grad_depth: Cell::new(0),
             anomaly: Cell::new(false),
+            fusing: Cell::new(0),
+            fuse_chunk: Cell::new(DEFAULT_CHUNK),
         }
     }
 
@@ -206,6 +237,7 @@ impl<T: Real> Tape<T> {
             requires_grad,
             poisoned: false,
             producer: None,
+            pending: None,
         });
         Var { tape: self, id }
     }
@@ -273,6 +305,7 @@ impl<T: Real> Tape<T> {
                     requires_grad: false,
                     poisoned: true,
                     producer: None,
+                    pending: None,
                 });
                 Var { tape: self, id }
             })
@@ -289,6 +322,19 @@ impl<T: Real> Tape<T> {
         inputs: &[Var<'t, T>],
         n_outputs: usize,
     ) -> SmallVec<[Var<'t, T>; 2]> {
+        // Pending (fused) inputs are computed first, in one fused op: this op then runs eagerly.
+        let pending: SmallVec<[u32; 4]> = {
+            let inner = self.inner.borrow();
+            inputs
+                .iter()
+                .filter(|v| std::ptr::eq(v.tape, self))
+                .filter(|v| inner.slots[v.id as usize].pending.is_some())
+                .map(|v| v.id)
+                .collect()
+        };
+        if !pending.is_empty() {
+            self.materialize_ids(&pending);
+        }
         let mut values: SmallVec<[Arc<Tensor<T>>; 4]> = SmallVec::new();
         let mut requires_grad = false;
         {
@@ -353,6 +399,7 @@ impl<T: Real> Tape<T> {
                 requires_grad,
                 poisoned: false,
                 producer,
+                pending: None,
             });
             out_ids.push(id);
             vars.push(Var { tape: self, id });
@@ -370,6 +417,402 @@ impl<T: Real> Tape<T> {
     /// Records a single-output op.
     pub fn apply<'t, O: Op<T>>(&'t self, op: O, inputs: &[Var<'t, T>]) -> Var<'t, T> {
         self.apply_multi(op, inputs, 1)[0]
+    }
+
+    /// Runs `f` as a fused region: elementwise and broadcast ops inside it (unary and binary
+    /// math, `where_`, `x * x`, `sum_axes(&[-1], _)` and `normalize` over a last axis of at
+    /// most [`crate::fused::MAX_LANE`]) are recorded, not computed, and the graph behind a
+    /// variable becomes one [`crate::fused::FusedOp`] when its value is first needed: read,
+    /// fed to any other op (which then runs eagerly: the fallback for ops the fuser does not
+    /// handle), or asked for with [`Tape::materialize`]. Results equal the eager ops' (see
+    /// the `fused` module for the bounds); code outside a region is unaffected.
+    pub fn fused<R>(&self, f: impl FnOnce() -> R) -> R {
+        struct Guard<'a>(&'a Cell<u32>);
+        impl Drop for Guard<'_> {
+            fn drop(&mut self) {
+                self.0.set(self.0.get() - 1);
+            }
+        }
+        self.fusing.set(self.fusing.get() + 1);
+        let _guard = Guard(&self.fusing);
+        f()
+    }
+
+    /// True inside [`Tape::fused`].
+    pub fn is_fusing(&self) -> bool {
+        self.fusing.get() > 0
+    }
+
+    /// Elements per chunk of the fused ops materialised from now on (default
+    /// [`crate::fused::DEFAULT_CHUNK`]; at least one row). Results do not depend on it except
+    /// for the summation order of gradients of inputs broadcast over rows.
+    pub fn set_fused_chunk(&self, elems: usize) {
+        self.fuse_chunk.set(elems.max(1));
+    }
+
+    /// Computes the pending variables among `vars` together: one fused op for the graph
+    /// behind all of them (shared intermediates computed once). Others are left as they are.
+    pub fn materialize(&self, vars: &[Var<'_, T>]) {
+        let ids: SmallVec<[u32; 4]> = vars
+            .iter()
+            .filter(|v| std::ptr::eq(v.tape, self) && v.is_pending())
+            .map(|v| v.id)
+            .collect();
+        if !ids.is_empty() {
+            self.materialize_ids(&ids);
+        }
+    }
+
+    /// Records `kind` on `args` as a pending node when inside a fused region and the inputs
+    /// fit; `None` tells the caller to run the eager op (which also reports bad inputs).
+    pub(crate) fn record_lazy<'t>(
+        &'t self,
+        kind: Kind<T>,
+        args: &[Var<'t, T>],
+        mask: Option<&ArrayD<bool>>,
+    ) -> Option<Var<'t, T>> {
+        if !self.is_fusing() || args.iter().any(|v| !std::ptr::eq(v.tape, self)) {
+            return None;
+        }
+        let shapes: SmallVec<[Vec<usize>; 3]> = args.iter().map(|v| v.shape()).collect();
+        let shape = match kind {
+            Kind::Unary(crate::ops::elementwise::Unary::Clamp(lo, hi))
+                if lo.is_nan() || hi.is_nan() || lo > hi =>
+            {
+                return None
+            }
+            Kind::Unary(_) | Kind::MulSelf => shapes[0].clone(),
+            Kind::Binary(b) => {
+                crate::tensor::broadcast_shapes(b.name(), &shapes[0], &shapes[1]).ok()?
+            }
+            Kind::Select => {
+                let s = crate::tensor::broadcast_shapes("where", &shapes[0], &shapes[1]).ok()?;
+                crate::tensor::broadcast_shapes("where", &s, mask?.shape()).ok()?
+            }
+            Kind::SumLast(keep) => {
+                let s = &shapes[0];
+                let k = *s.last()?;
+                if k > crate::fused::MAX_LANE {
+                    return None;
+                }
+                let mut o = s[..s.len() - 1].to_vec();
+                if keep {
+                    o.push(1);
+                }
+                o
+            }
+            Kind::Normalize(eps) => {
+                let k = *shapes[0].last()?;
+                if eps.is_nan() || eps <= T::zero() || k > crate::fused::MAX_LANE {
+                    return None;
+                }
+                shapes[0].clone()
+            }
+        };
+        let mut inner = self.inner.borrow_mut();
+        let mut rg = false;
+        for v in args {
+            let s = &inner.slots[v.id as usize];
+            if s.poisoned {
+                return None;
+            }
+            rg |= s.requires_grad;
+        }
+        rg &= !self.is_no_grad();
+        let mut largs: SmallVec<[LazyArg; 3]> = SmallVec::new();
+        if let Some(m) = mask {
+            largs.push(LazyArg::Mask(inner.masks.len() as u32));
+            inner.masks.push(Arc::new(m.clone()));
+        }
+        largs.extend(args.iter().map(|v| LazyArg::Slot(v.id)));
+        let node = inner.lazy.len() as u32;
+        inner.lazy.push(LazyNode {
+            kind,
+            args: largs,
+            shape,
+        });
+        let id = inner.slots.len() as u32;
+        let placeholder = match inner.slots.last() {
+            Some(s) if s.pending.is_some() => s.value.clone(),
+            _ => Arc::new(scalar(T::nan())),
+        };
+        inner.slots.push(Slot {
+            value: placeholder,
+            requires_grad: rg,
+            poisoned: false,
+            producer: None,
+            pending: Some(node),
+        });
+        Some(Var { tape: self, id })
+    }
+
+    /// Computes the pending slots `targets` (and the pending graph behind them): one fused op
+    /// when the graph fits the chunk scheme, else each target on its own, else the nodes one
+    /// by one with the eager ops.
+    pub(crate) fn materialize_ids(&self, targets: &[u32]) {
+        let mut targets: Vec<u32> = targets.to_vec();
+        targets.sort_unstable();
+        targets.dedup();
+        let (dag, ext_ids, order) = {
+            let inner = self.inner.borrow();
+            targets.retain(|&t| inner.slots[t as usize].pending.is_some());
+            if targets.is_empty() {
+                return;
+            }
+            // The pending slots behind the targets, in creation (topological) order.
+            let mut seen: Vec<u32> = Vec::new();
+            let mut stack = targets.clone();
+            let mut mark: HashMap<u32, ()> = HashMap::new();
+            while let Some(s) = stack.pop() {
+                if mark.insert(s, ()).is_some() {
+                    continue;
+                }
+                seen.push(s);
+                let p = inner.slots[s as usize].pending.expect("pending") as usize;
+                for a in &inner.lazy[p].args {
+                    if let LazyArg::Slot(i) = *a {
+                        if inner.slots[i as usize].pending.is_some() {
+                            stack.push(i);
+                        }
+                    }
+                }
+            }
+            seen.sort_unstable();
+            let index: HashMap<u32, usize> =
+                seen.iter().enumerate().map(|(k, &s)| (s, k)).collect();
+            let mut ext_ids: Vec<u32> = Vec::new();
+            let mut ext_index: HashMap<u32, usize> = HashMap::new();
+            let mut data = Vec::new();
+            let mut nodes = Vec::with_capacity(seen.len());
+            let mut poisoned = false;
+            for &s in &seen {
+                let slot = &inner.slots[s as usize];
+                let ln = &inner.lazy[slot.pending.expect("pending") as usize];
+                let args = ln
+                    .args
+                    .iter()
+                    .map(|a| match *a {
+                        LazyArg::Slot(i) => match index.get(&i) {
+                            Some(&k) => Arg::Node(k),
+                            None => {
+                                poisoned |= inner.slots[i as usize].poisoned;
+                                Arg::Ext(*ext_index.entry(i).or_insert_with(|| {
+                                    ext_ids.push(i);
+                                    ext_ids.len() - 1
+                                }))
+                            }
+                        },
+                        LazyArg::Mask(m) => {
+                            let mask = &inner.masks[m as usize];
+                            data.push(mask.mapv(|b| if b { T::one() } else { T::zero() }));
+                            Arg::Data(data.len() - 1)
+                        }
+                    })
+                    .collect();
+                nodes.push(DagNode {
+                    slot: s,
+                    kind: ln.kind,
+                    args,
+                    shape: ln.shape.clone(),
+                    rg: slot.requires_grad,
+                });
+            }
+            if poisoned {
+                drop(inner);
+                let err = AutodiffError::Tape("poisoned".into());
+                self.poison_slots(&seen, err);
+                return;
+            }
+            let ext_shapes = ext_ids
+                .iter()
+                .map(|&i| inner.slots[i as usize].value.shape().to_vec())
+                .collect();
+            let dag = Dag {
+                nodes,
+                ext_shapes,
+                data,
+                targets: targets.iter().map(|t| index[t]).collect(),
+            };
+            (dag, ext_ids, seen)
+        };
+        match crate::fused::plan(dag, self.fuse_chunk.get(), self.anomaly.get()) {
+            Some(op) => self.record_into(op, &ext_ids, &targets),
+            None if targets.len() > 1 => self.materialize_groups(&targets),
+            None => {
+                for s in order {
+                    self.eager_node(s);
+                }
+            }
+        }
+    }
+
+    /// Computes targets that do not fit one fused op: grouped by their number of rows, the
+    /// pending nodes the groups share computed first (so that none is computed twice), then
+    /// each group, in the order of their last targets.
+    fn materialize_groups(&self, targets: &[u32]) {
+        let (groups, shared) = {
+            let inner = self.inner.borrow();
+            let rows = |t: u32| {
+                let p = inner.slots[t as usize].pending.expect("pending") as usize;
+                inner.lazy[p].shape.first().copied()
+            };
+            let mut groups: Vec<(Option<usize>, Vec<u32>)> = Vec::new();
+            for &t in targets {
+                let r = rows(t);
+                match groups.iter_mut().find(|g| g.0 == r) {
+                    Some(g) => g.1.push(t),
+                    None => groups.push((r, vec![t])),
+                }
+            }
+            let mut count: HashMap<u32, usize> = HashMap::new();
+            for (_, g) in &groups {
+                let mut seen: HashMap<u32, ()> = HashMap::new();
+                let mut stack = g.clone();
+                while let Some(s) = stack.pop() {
+                    if seen.insert(s, ()).is_some() {
+                        continue;
+                    }
+                    *count.entry(s).or_default() += 1;
+                    let p = inner.slots[s as usize].pending.expect("pending") as usize;
+                    for a in &inner.lazy[p].args {
+                        if let LazyArg::Slot(i) = *a {
+                            if inner.slots[i as usize].pending.is_some() {
+                                stack.push(i);
+                            }
+                        }
+                    }
+                }
+            }
+            let mut shared: Vec<u32> = count
+                .into_iter()
+                .filter(|&(_, c)| c > 1)
+                .map(|(s, _)| s)
+                .collect();
+            shared.sort_unstable();
+            let mut groups: Vec<Vec<u32>> = groups.into_iter().map(|g| g.1).collect();
+            groups.sort_by_key(|g| g.iter().max().copied());
+            (groups, shared)
+        };
+        if groups.len() == 1 {
+            // Same rows, yet no plan: each target alone (the eager fallback when that fails
+            // too computes the shared nodes once).
+            for &t in targets {
+                self.materialize_ids(&[t]);
+            }
+            return;
+        }
+        if !shared.is_empty() {
+            self.materialize_ids(&shared);
+        }
+        for g in groups {
+            self.materialize_ids(&g);
+        }
+    }
+
+    /// Computes one pending slot with its eager op (its pending arguments must be computed).
+    fn eager_node(&self, s: u32) {
+        let (kind, args, mask, ndim) = {
+            let inner = self.inner.borrow();
+            let Some(p) = inner.slots[s as usize].pending else {
+                return;
+            };
+            let ln = &inner.lazy[p as usize];
+            let mut mask = None;
+            let mut args: SmallVec<[u32; 3]> = SmallVec::new();
+            for a in &ln.args {
+                match *a {
+                    LazyArg::Slot(i) => args.push(i),
+                    LazyArg::Mask(m) => mask = Some(inner.masks[m as usize].clone()),
+                }
+            }
+            let ndim = inner.slots[args[0] as usize].value.ndim();
+            (ln.kind, args, mask, ndim)
+        };
+        match kind {
+            Kind::Unary(k) => self.record_into(UnaryOp(k), &args, &[s]),
+            Kind::Binary(b) => self.record_into(BinaryOp(b), &args, &[s]),
+            Kind::MulSelf => self.record_into(MulSelfOp, &args, &[s]),
+            Kind::Select => {
+                let mask = (*mask.expect("where has a mask")).clone();
+                self.record_into(WhereOp { mask }, &args, &[s])
+            }
+            Kind::SumLast(keep) => {
+                let op = SumOp::new(Some(vec![ndim.saturating_sub(1)]), keep, false);
+                self.record_into(op, &args, &[s])
+            }
+            Kind::Normalize(eps) => self.record_into(NormalizeOp { eps }, &args, &[s]),
+        }
+    }
+
+    /// Marks the pending slots `ids` poisoned and records `err` (if first).
+    fn poison_slots(&self, ids: &[u32], err: AutodiffError) {
+        let mut inner = self.inner.borrow_mut();
+        if inner.error.is_none() {
+            inner.error = Some(err);
+        }
+        for &i in ids {
+            let s = &mut inner.slots[i as usize];
+            s.poisoned = true;
+            s.pending = None;
+            s.requires_grad = false;
+        }
+    }
+
+    /// Runs `op` on the (computed) slots `inputs` and stores its outputs in the pending slots
+    /// `outs`, recording it for backward when one of them requires gradients.
+    fn record_into<O: Op<T>>(&self, mut op: O, inputs: &[u32], outs: &[u32]) {
+        let values: SmallVec<[Arc<Tensor<T>>; 4]> = {
+            let inner = self.inner.borrow();
+            if inputs.iter().any(|&i| inner.slots[i as usize].poisoned) {
+                drop(inner);
+                return self.poison_slots(outs, AutodiffError::Tape("poisoned".into()));
+            }
+            inputs
+                .iter()
+                .map(|&i| inner.slots[i as usize].value.clone())
+                .collect()
+        };
+        let refs: SmallVec<[&Tensor<T>; 4]> = values.iter().map(|a| &**a).collect();
+        let vals = match op.forward(&refs) {
+            Ok(v) if v.len() == outs.len() => v,
+            Ok(v) => {
+                let err = AutodiffError::Op {
+                    op: op.name(),
+                    detail: format!(
+                        "forward returned {} outputs, {} expected",
+                        v.len(),
+                        outs.len()
+                    ),
+                };
+                return self.poison_slots(outs, err);
+            }
+            Err(e) => return self.poison_slots(outs, e),
+        };
+        if self.anomaly.get() && !vals.iter().all(all_finite) {
+            let err = AutodiffError::Anomaly {
+                op: op.name(),
+                node: outs[0] as usize,
+                pass: Pass::Forward,
+                input_shapes: refs.iter().map(|t| t.shape().to_vec()).collect(),
+            };
+            return self.poison_slots(outs, err);
+        }
+        let mut inner = self.inner.borrow_mut();
+        let rg = outs.iter().any(|&o| inner.slots[o as usize].requires_grad);
+        let producer = rg.then_some(inner.ops.len() as u32);
+        for (&o, v) in outs.iter().zip(vals) {
+            let s = &mut inner.slots[o as usize];
+            s.value = Arc::new(v);
+            s.pending = None;
+            s.producer = producer;
+        }
+        if rg {
+            inner.ops.push(Record {
+                op: Box::new(op),
+                inputs: inputs.iter().copied().collect(),
+                outputs: outs.iter().copied().collect(),
+            });
+        }
     }
 
     /// Gradients of a scalar (one-element) `loss` with respect to every leaf that requires them.
@@ -524,6 +967,9 @@ impl<'t, T: Real> Var<'t, T> {
     }
     /// The value, or the tape's first error if this variable was poisoned by it.
     pub fn value(&self) -> Result<Arc<Tensor<T>>> {
+        if self.is_pending() {
+            self.tape.materialize_ids(&[self.id]);
+        }
         let inner = self.tape.inner.borrow();
         let s = &inner.slots[self.id as usize];
         if s.poisoned {
@@ -548,20 +994,37 @@ impl<'t, T: Real> Var<'t, T> {
     }
     /// Shape of the value (empty for scalars and poisoned variables).
     pub fn shape(&self) -> Vec<usize> {
-        self.tape.inner.borrow().slots[self.id as usize]
-            .value
-            .shape()
-            .to_vec()
+        let inner = self.tape.inner.borrow();
+        let s = &inner.slots[self.id as usize];
+        match s.pending {
+            Some(p) => inner.lazy[p as usize].shape.clone(),
+            None => s.value.shape().to_vec(),
+        }
     }
     /// Number of dimensions.
     pub fn ndim(&self) -> usize {
-        self.tape.inner.borrow().slots[self.id as usize]
-            .value
-            .ndim()
+        let inner = self.tape.inner.borrow();
+        let s = &inner.slots[self.id as usize];
+        match s.pending {
+            Some(p) => inner.lazy[p as usize].shape.len(),
+            None => s.value.ndim(),
+        }
     }
     /// Number of elements.
     pub fn len(&self) -> usize {
-        self.tape.inner.borrow().slots[self.id as usize].value.len()
+        let inner = self.tape.inner.borrow();
+        let s = &inner.slots[self.id as usize];
+        match s.pending {
+            Some(p) => inner.lazy[p as usize].shape.iter().product(),
+            None => s.value.len(),
+        }
+    }
+    /// True for a variable recorded inside [`Tape::fused`] whose value is not computed yet
+    /// (it is, in one fused op with the graph behind it, when first needed).
+    pub fn is_pending(&self) -> bool {
+        self.tape.inner.borrow().slots[self.id as usize]
+            .pending
+            .is_some()
     }
     /// True for zero-element variables.
     pub fn is_empty(&self) -> bool {
@@ -573,6 +1036,9 @@ impl<'t, T: Real> Var<'t, T> {
     }
     /// A constant sharing this variable's value: gradients stop here.
     pub fn detach(&self) -> Var<'t, T> {
+        if self.is_pending() {
+            self.tape.materialize_ids(&[self.id]);
+        }
         let inner = self.tape.inner.borrow();
         let s = &inner.slots[self.id as usize];
         if s.poisoned {

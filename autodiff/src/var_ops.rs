@@ -7,6 +7,7 @@ use std::ops::{Add, Div, Mul, Neg, Sub};
 
 use ndarray::ArrayD;
 
+use crate::fused::Kind;
 use crate::ops::elementwise::{Binary, BinaryOp, MulSelfOp, Unary, UnaryOp, WhereOp};
 use crate::ops::index::{GatherOp, IndexSelectOp, ScatterAddOp};
 use crate::ops::linalg::MatMulOp;
@@ -28,13 +29,31 @@ fn axis(ndim: usize, a: isize) -> usize {
 }
 
 impl<'t, T: Real> Var<'t, T> {
+    /// Inside [`Tape::fused`]: `kind` recorded as a pending node, when it fits.
+    #[inline]
+    fn lazy(self, kind: Kind<T>, args: &[Self], mask: Option<&ArrayD<bool>>) -> Option<Self> {
+        if self.tape().is_fusing() {
+            self.tape().record_lazy(kind, args, mask)
+        } else {
+            None
+        }
+    }
     fn unary(self, k: Unary<T>) -> Self {
+        if let Some(v) = self.lazy(Kind::Unary(k), &[self], None) {
+            return v;
+        }
         self.tape().apply(UnaryOp(k), &[self])
     }
     fn binary(self, k: Binary, o: Self) -> Self {
         if k == Binary::Mul && self.id() == o.id() && std::ptr::eq(self.tape(), o.tape()) {
             // `x * x`: one gradient tensor instead of two added together.
+            if let Some(v) = self.lazy(Kind::MulSelf, &[self], None) {
+                return v;
+            }
             return self.tape().apply(MulSelfOp, &[self]);
+        }
+        if let Some(v) = self.lazy(Kind::Binary(k), &[self, o], None) {
+            return v;
         }
         self.tape().apply(BinaryOp(k), &[self, o])
     }
@@ -108,6 +127,9 @@ impl<'t, T: Real> Var<'t, T> {
     }
     /// `self` where `mask` is true, `other` elsewhere (all three broadcast).
     pub fn where_(self, mask: ArrayD<bool>, other: Self) -> Self {
+        if let Some(v) = self.lazy(Kind::Select, &[self, other], Some(&mask)) {
+            return v;
+        }
         self.tape().apply(WhereOp { mask }, &[self, other])
     }
 
@@ -128,6 +150,11 @@ impl<'t, T: Real> Var<'t, T> {
     /// Sum over the given axes.
     pub fn sum_axes(self, axes: &[isize], keepdim: bool) -> Self {
         let n = self.ndim();
+        if n > 0 && axes.len() == 1 && axis(n, axes[0]) == n - 1 {
+            if let Some(v) = self.lazy(Kind::SumLast(keepdim), &[self], None) {
+                return v;
+            }
+        }
         let a = axes.iter().map(|&a| axis(n, a)).collect();
         self.tape()
             .apply(SumOp::new(Some(a), keepdim, false), &[self])
@@ -164,6 +191,9 @@ impl<'t, T: Real> Var<'t, T> {
     }
     /// Unit vectors along the last axis: `x / max(|x|, eps)`.
     pub fn normalize(self, eps: T) -> Self {
+        if let Some(v) = self.lazy(Kind::Normalize(eps), &[self], None) {
+            return v;
+        }
         self.tape().apply(NormalizeOp { eps }, &[self])
     }
     /// Euclidean norm along the last axis.

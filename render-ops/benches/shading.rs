@@ -1,6 +1,11 @@
 //! Shading and texturing speed, f32:
 //! - fused against composed Phong (one directional, one point and one ambient light) and SH
 //!   lighting on 512 x 512 fragments, forward + backward (gradients for every input);
+//! - the composed Phong and SH models run through the tape's fused evaluation
+//!   (`Tape::fused`, group entries `composed_tape_fused`);
+//! - the toon/rim custom shader of `examples/custom_shader.rs` on the 256 x 256 fragments of a
+//!   full-frame render, forward + backward, eager against fused (the shader stage alone: the
+//!   rasterization is the same either way);
 //! - texture sampling throughput (samples per second), bilinear and trilinear, forward and
 //!   forward + backward, 512 x 512 samples from a 512 x 512 RGB texture.
 //!
@@ -47,7 +52,28 @@ fn data() -> Data {
     }
 }
 
-fn phong<'t>(tape: &'t Tape<f32>, d: &Data, fused: bool) -> (Var<'t, f32>, Vec<Var<'t, f32>>) {
+/// Which implementation of a lighting model to run.
+#[derive(Clone, Copy, PartialEq)]
+enum Path {
+    /// The hand-fused op.
+    Fused,
+    /// The composed tape code, op by op.
+    Composed,
+    /// The composed tape code inside `Tape::fused`.
+    TapeFused,
+}
+
+impl Path {
+    fn name(self) -> &'static str {
+        match self {
+            Path::Fused => "fused",
+            Path::Composed => "composed",
+            Path::TapeFused => "composed_tape_fused",
+        }
+    }
+}
+
+fn phong<'t>(tape: &'t Tape<f32>, d: &Data, path: Path) -> (Var<'t, f32>, Vec<Var<'t, f32>>) {
     let pos = tape.var_shared(d.pos.clone(), true);
     let nrm = tape.var_shared(d.nrm.clone(), true);
     let alb = tape.var_shared(d.alb.clone(), true);
@@ -66,10 +92,14 @@ fn phong<'t>(tape: &'t Tape<f32>, d: &Data, fused: bool) -> (Var<'t, f32>, Vec<V
         normal: nrm,
         albedo: alb,
     };
-    let y = if fused {
-        shade(&surf, &m, &lights, eye)
-    } else {
-        shade_composed(&surf, &m, &lights, eye)
+    let y = match path {
+        Path::Fused => shade(&surf, &m, &lights, eye),
+        Path::Composed => shade_composed(&surf, &m, &lights, eye),
+        Path::TapeFused => {
+            let y = tape.fused(|| shade_composed(&surf, &m, &lights, eye));
+            tape.materialize(&[y]);
+            y
+        }
     };
     (y, vec![pos, nrm, alb, dir, eye])
 }
@@ -78,12 +108,11 @@ fn bench_shading(c: &mut Criterion) {
     let d = data();
     let mut g = c.benchmark_group("phong_512x512_fwd_bwd");
     g.throughput(Throughput::Elements(N as u64));
-    for fused in [true, false] {
-        let name = if fused { "fused" } else { "composed" };
-        g.bench_function(name, |b| {
+    for path in [Path::Fused, Path::Composed, Path::TapeFused] {
+        g.bench_function(path.name(), |b| {
             b.iter(|| {
                 let tape = Tape::new();
-                let (y, vars) = phong(&tape, &d, fused);
+                let (y, vars) = phong(&tape, &d, path);
                 let gr = tape.vjp(y, d.grad.clone()).unwrap();
                 vars.iter()
                     .filter_map(|&v| gr.get(v))
@@ -95,9 +124,8 @@ fn bench_shading(c: &mut Criterion) {
     g.finish();
     let mut g = c.benchmark_group("sh_512x512_fwd_bwd");
     g.throughput(Throughput::Elements(N as u64));
-    for fused in [true, false] {
-        let name = if fused { "fused" } else { "composed" };
-        g.bench_function(name, |b| {
+    for path in [Path::Fused, Path::Composed, Path::TapeFused] {
+        g.bench_function(path.name(), |b| {
             b.iter(|| {
                 let tape = Tape::new();
                 let (n, a) = (
@@ -105,13 +133,74 @@ fn bench_shading(c: &mut Criterion) {
                     tape.var_shared(d.alb.clone(), true),
                 );
                 let s = tape.leaf(d.sh.clone());
-                let y = if fused {
-                    sh_shade(n, a, s)
-                } else {
-                    sh_shade_composed(n, a, s)
+                let y = match path {
+                    Path::Fused => sh_shade(n, a, s),
+                    Path::Composed => sh_shade_composed(n, a, s),
+                    Path::TapeFused => {
+                        let y = tape.fused(|| sh_shade_composed(n, a, s));
+                        tape.materialize(&[y]);
+                        y
+                    }
                 };
                 let gr = tape.vjp(y, d.grad.clone()).unwrap();
                 gr.get(s).map(|g| g.len()).unwrap_or(0) + gr.get(n).map(|g| g.len()).unwrap_or(0)
+            })
+        });
+    }
+    g.finish();
+}
+
+/// The toon/rim shader of `examples/custom_shader.rs` (same ops, same constants) on
+/// per-fragment normals and view directions.
+fn toon_rim<'t>(
+    normal: Var<'t, f32>,
+    view_dir: Var<'t, f32>,
+    threshold: Var<'t, f32>,
+    rim: Var<'t, f32>,
+) -> Var<'t, f32> {
+    let t = normal.tape();
+    let vec3 = |a: [f32; 3]| t.constant(ndarray::arr1(&a).into_dyn());
+    let to_light = vec3([-0.4, 0.6, 0.7]).normalize(1e-12);
+    let ndl = (normal * to_light).sum_axes(&[-1], true);
+    let step = ((ndl - threshold) * (1.0 / 0.08)).sigmoid();
+    let albedo = vec3([0.9, 0.45, 0.3]);
+    let diffuse = albedo * (step * 0.75 + 0.2);
+    let ndv = (normal * view_dir).sum_axes(&[-1], true);
+    let fresnel = (-ndv + 1.0).relu().powf(5.0) * 0.96 + 0.04;
+    diffuse + fresnel * rim * vec3([0.3, 0.6, 1.0])
+}
+
+fn bench_custom_shader(c: &mut Criterion) {
+    const F: usize = 256 * 256;
+    let mut rng = Rng::new(2);
+    let unit = |t: Tensor<f32>| {
+        let mut t = t;
+        for mut row in t.rows_mut() {
+            let l = row.dot(&row).sqrt().max(1e-6);
+            row.mapv_inplace(|v| v / l);
+        }
+        Arc::new(t)
+    };
+    let nrm = unit(rng.normal_tensor(&[F, 3]));
+    let view = unit(rng.normal_tensor(&[F, 3]));
+    let grad: Tensor<f32> = rng.normal_tensor(&[F, 3]);
+    let mut g = c.benchmark_group("toon_rim_256x256_fwd_bwd");
+    g.throughput(Throughput::Elements(F as u64));
+    for fused in [false, true] {
+        g.bench_function(if fused { "fused" } else { "eager" }, |b| {
+            b.iter(|| {
+                let tape = Tape::new();
+                let n = tape.var_shared(nrm.clone(), true);
+                let v = tape.var_shared(view.clone(), true);
+                let th = tape.leaf(ndarray::arr1(&[0.3f32]).into_dyn());
+                let rim = tape.leaf(ndarray::arr1(&[0.8f32]).into_dyn());
+                let y = if fused {
+                    tape.fused(|| toon_rim(n, v, th, rim))
+                } else {
+                    toon_rim(n, v, th, rim)
+                };
+                let gr = tape.vjp(y, grad.clone()).unwrap();
+                gr.get(n).map(|g| g.len()).unwrap_or(0) + gr.get(th).map(|g| g.len()).unwrap_or(0)
             })
         });
     }
@@ -177,6 +266,6 @@ fn bench_texture(c: &mut Criterion) {
 criterion_group! {
     name = benches;
     config = config();
-    targets = bench_shading, bench_texture
+    targets = bench_shading, bench_custom_shader, bench_texture
 }
 criterion_main!(benches);

@@ -11,6 +11,10 @@
 //! }, &[0.0, 0.0, 0.0])?;
 //! ```
 //!
+//! The shader runs inside [`autodiff::Tape::fused`]: its elementwise and broadcast ops (the
+//! arithmetic of a lighting model) become one fused tape op, evaluated chunk by chunk of
+//! fragments without materialising intermediates, with results equal to the eager ops'.
+//!
 //! Everything in [`FragmentInputs`] is differentiable: gradients reach the mesh positions
 //! (through the barycentrics and the vertex normals), normals, uvs, extra attributes,
 //! textures and the eye. The screen-space uv derivatives `uv_da` are differentiable with
@@ -340,7 +344,15 @@ where
     O: Into<ShaderOutput<'t, T>>,
 {
     let inputs = fragment_inputs(r, mesh, eye)?;
-    let out: ShaderOutput<'t, T> = shader(&inputs).into();
+    // The shader's elementwise ops run fused (one tape op evaluated in cache-sized chunks of
+    // fragments, its backward recomputing them: see `autodiff::fused`); other ops inside it
+    // run eagerly as before.
+    let tape = eye.tape();
+    let out: ShaderOutput<'t, T> = tape.fused(|| shader(&inputs).into());
+    match out.alpha {
+        Some(a) => tape.materialize(&[out.color, a]),
+        None => tape.materialize(&[out.color]),
+    }
     let cs = out.color.value()?.shape().to_vec();
     if cs.len() != 2 || cs[0] != inputs.len() {
         return Err(AutodiffError::shape(

@@ -1,0 +1,1342 @@
+//! Fused evaluation of elementwise graphs: inside [`crate::Tape::fused`], elementwise and
+//! broadcast ops (unary, binary, `where`, `x * x`, sums and normalisation over a short last
+//! axis) are not computed but recorded as nodes of a small expression graph. When a value is
+//! needed (read, fed to an op the fuser does not handle, or asked for with
+//! [`crate::Tape::materialize`]) the graph behind it becomes ONE tape op, [`FusedOp`], that
+//! evaluates it chunk by chunk, so that a chunk's intermediates stay in cache and are never
+//! written to memory. Its backward recomputes each chunk's forward in cache and runs the chain
+//! rule there: the op stores only its inputs and outputs (checkpointing at chunk granularity).
+//!
+//! Layout: every node is either *row-varying* (its axis 0 is the fused op's row axis of length
+//! `N`, the outputs' first dimension, sliced into chunks of whole rows) or *row-invariant* (it
+//! does not depend on the row, and is recomputed whole in every chunk: small vectors such as a
+//! light direction). Chunk boundaries depend only on the shapes and the chunk size, never on
+//! the thread count, so results are deterministic for any rayon pool.
+//!
+//! Accuracy against the eager tape: every node applies the eager op's per-element formula in
+//! the same order (the f32 polynomial kernels of `vmath` where the eager op uses them), so
+//! values are bit-identical in f32 and f64, and so are the gradients of row-varying inputs.
+//! The gradient of a row-invariant input broadcast over rows (a colour `[3]` times `[N, 3]`) is
+//! summed per chunk and the chunk sums are added in chunk order, where eager sums all `N` rows
+//! in one sequence: the two orders differ by rounding only (for `n` rows, within the usual
+//! `n eps` relative bound of a sum; the tests use `1e-12` relative in f64).
+
+// Kernels index re-sliced slices of one length (`&a[..n]`): bounds checks vanish and the
+// loops vectorise.
+#![allow(clippy::needless_range_loop)]
+
+use std::borrow::Cow;
+
+use rayon::prelude::*;
+use smallvec::SmallVec;
+
+use crate::error::{AutodiffError, Pass, Result};
+use crate::ops::elementwise::{sigmoid, Binary, Unary};
+use crate::tape::{BackwardCtx, Op};
+use crate::tensor::{Tensor, PAR_MIN_LEN};
+use crate::Real;
+
+/// Elements per chunk by default (per row-varying node; with ~50 nodes of f32 this keeps a
+/// chunk's values within a 256 KiB L2 share).
+pub const DEFAULT_CHUNK: usize = 1024;
+
+/// Widest last axis a fused reduction (`sum_axes(&[-1])`, `normalize`) accepts.
+pub const MAX_LANE: usize = 8;
+
+/// Largest row-invariant node (elements) the fuser recomputes in every chunk.
+const INV_MAX: usize = 4096;
+
+/// What a recorded node computes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum Kind<T> {
+    Unary(Unary<T>),
+    Binary(Binary),
+    /// `x * x` of one variable (the eager `MulSelfOp`).
+    MulSelf,
+    /// `where(mask, a, b)`; the mask is the first argument, a non-differentiable 0/1 tensor.
+    Select,
+    /// Sum over the last axis (`keepdim`).
+    SumLast(bool),
+    /// `x / max(|x|, eps)` along the last axis.
+    Normalize(T),
+}
+
+impl<T: Real> Kind<T> {
+    pub(crate) fn name(&self) -> &'static str {
+        match self {
+            Kind::Unary(u) => u.name(),
+            Kind::Binary(b) => b.name(),
+            Kind::MulSelf => "mul",
+            Kind::Select => "where",
+            Kind::SumLast(_) => "sum",
+            Kind::Normalize(_) => "normalize",
+        }
+    }
+}
+
+/// An argument of a node in a [`Dag`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Arg {
+    /// A materialised tape variable (index into [`Dag::ext_shapes`]).
+    Ext(usize),
+    /// Non-differentiable data owned by the op (index into [`Dag::data`]).
+    Data(usize),
+    /// An earlier node.
+    Node(usize),
+}
+
+/// One node of a [`Dag`].
+pub(crate) struct DagNode<T> {
+    pub slot: u32,
+    pub kind: Kind<T>,
+    pub args: SmallVec<[Arg; 3]>,
+    pub shape: Vec<usize>,
+    pub rg: bool,
+}
+
+/// The pending graph behind some targets, as the tape hands it to [`plan`]: nodes in
+/// creation (topological) order.
+pub(crate) struct Dag<T> {
+    pub nodes: Vec<DagNode<T>>,
+    pub ext_shapes: Vec<Vec<usize>>,
+    pub data: Vec<Tensor<T>>,
+    /// Node indices of the outputs.
+    pub targets: Vec<usize>,
+}
+
+/// How a node reads an argument in a chunk.
+#[derive(Clone, Debug)]
+enum Access {
+    /// Same local layout as the node's output.
+    Full,
+    /// A single value broadcast everywhere.
+    Scalar,
+    /// General broadcast: output element `r * w + j` reads argument element
+    /// `r * rstride + map[j]`.
+    Expand { map: Vec<u32>, rstride: usize },
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Src {
+    /// External: tape input or data (inputs first).
+    Ext(usize),
+    Node(usize),
+}
+
+struct PNode<T> {
+    kind: Kind<T>,
+    args: SmallVec<[(Src, Access); 3]>,
+    row: bool,
+    /// Elements per row when row-varying, all elements otherwise.
+    w: usize,
+    /// Lane width of reductions (the argument's last axis).
+    lane: usize,
+    live: bool,
+    slot: u32,
+    arg_shapes: Vec<Vec<usize>>,
+}
+
+#[derive(Clone, Copy)]
+struct ExtInfo {
+    row: bool,
+    w: usize,
+}
+
+/// The tape op of a fused region (see the module docs).
+pub struct FusedOp<T: Real> {
+    nodes: Vec<PNode<T>>,
+    ext: Vec<ExtInfo>,
+    n_in: usize,
+    data: Vec<Vec<T>>,
+    out_nodes: Vec<usize>,
+    out_shapes: Vec<Vec<usize>>,
+    ext_live: Vec<bool>,
+    n_rows: usize,
+    rows_per_chunk: usize,
+    anomaly: bool,
+}
+
+/// `shape` padded with leading ones to `rank`.
+fn padded(shape: &[usize], rank: usize) -> Vec<usize> {
+    let mut p = vec![1; rank - shape.len()];
+    p.extend_from_slice(shape);
+    p
+}
+
+/// Access of an argument `a` (shape, row) by an elementwise node of `out` (shape, row).
+fn access(out: &[usize], out_row: bool, a: &[usize], a_row: bool) -> Access {
+    let alen: usize = a.iter().product();
+    if a == out && a_row == out_row {
+        return Access::Full;
+    }
+    if alen == 1 && !a_row {
+        return Access::Scalar;
+    }
+    let r = out.len();
+    let p = padded(a, r);
+    // Row-major strides of the padded argument, zero along broadcast axes.
+    let mut strides = vec![0usize; r];
+    let mut s = 1;
+    for d in (0..r).rev() {
+        strides[d] = if p[d] == 1 && out[d] != 1 { 0 } else { s };
+        s *= p[d];
+    }
+    let first = usize::from(out_row);
+    let inner = &out[first..];
+    let w: usize = inner.iter().product();
+    let mut map = Vec::with_capacity(w);
+    let mut idx = vec![0usize; inner.len()];
+    for _ in 0..w {
+        let off: usize = idx
+            .iter()
+            .zip(&strides[first..])
+            .map(|(&i, &st)| i * st)
+            .sum();
+        map.push(off as u32);
+        for d in (0..inner.len()).rev() {
+            idx[d] += 1;
+            if idx[d] < inner[d] {
+                break;
+            }
+            idx[d] = 0;
+        }
+    }
+    let rstride = if out_row && a_row { strides[0] } else { 0 };
+    Access::Expand { map, rstride }
+}
+
+/// Plans the fused op of `dag`, or `None` when its shapes do not fit the row/chunk scheme
+/// (the caller then evaluates the nodes eagerly).
+pub(crate) fn plan<T: Real>(dag: Dag<T>, chunk: usize, anomaly: bool) -> Option<FusedOp<T>> {
+    let nn = dag.nodes.len();
+    let n_in = dag.ext_shapes.len();
+    let first = &dag.nodes[dag.targets[0]].shape;
+    let n_rows = if first.is_empty() { 1 } else { first[0] };
+    for &t in &dag.targets {
+        let s = &dag.nodes[t].shape;
+        if s.is_empty() != first.is_empty() || (!s.is_empty() && s[0] != n_rows) {
+            return None;
+        }
+    }
+    let rowed = n_rows > 1;
+    // Roles, assigned from the outputs down: None = not yet reached.
+    let mut role: Vec<Option<bool>> = vec![None; nn];
+    let mut ext_role: Vec<Option<bool>> = vec![None; n_in + dag.data.len()];
+    for &t in &dag.targets {
+        role[t] = Some(rowed);
+    }
+    let ext_shape = |a: Arg| -> &[usize] {
+        match a {
+            Arg::Ext(k) => &dag.ext_shapes[k],
+            Arg::Data(d) => dag.data[d].shape(),
+            Arg::Node(j) => &dag.nodes[j].shape,
+        }
+    };
+    for j in (0..nn).rev() {
+        let node = &dag.nodes[j];
+        let row = role[j]?;
+        for &a in &node.args {
+            let s = ext_shape(a);
+            let want = if !row {
+                false
+            } else {
+                match node.kind {
+                    Kind::SumLast(_) | Kind::Normalize(_) => {
+                        if s.len() < 2 {
+                            return None;
+                        }
+                        true
+                    }
+                    _ => s.len() == node.shape.len() && s[0] == n_rows,
+                }
+            };
+            let slot = match a {
+                Arg::Ext(k) => &mut ext_role[k],
+                Arg::Data(d) => &mut ext_role[n_in + d],
+                Arg::Node(i) => &mut role[i],
+            };
+            match *slot {
+                None => *slot = Some(want),
+                Some(r) if r != want => return None,
+                _ => {}
+            }
+        }
+    }
+    // Sizes: row-invariant nodes are recomputed per chunk.
+    let mut inv_total = 0usize;
+    let mut max_w = 1usize;
+    for (j, n) in dag.nodes.iter().enumerate() {
+        let len: usize = n.shape.iter().product();
+        if role[j] == Some(true) {
+            max_w = max_w.max(len / n_rows.max(1));
+        } else {
+            inv_total += len;
+        }
+    }
+    if rowed && inv_total > INV_MAX {
+        return None;
+    }
+    let rows_per_chunk = if rowed {
+        (chunk.max(1) / max_w).max(1)
+    } else {
+        1
+    };
+    let n_chunks = n_rows.div_ceil(rows_per_chunk).max(1);
+    let ext: Vec<ExtInfo> = (0..n_in + dag.data.len())
+        .map(|k| {
+            let s: &[usize] = if k < n_in {
+                &dag.ext_shapes[k]
+            } else {
+                dag.data[k - n_in].shape()
+            };
+            let len: usize = s.iter().product();
+            let row = ext_role[k] == Some(true);
+            ExtInfo {
+                row,
+                w: if row { len / n_rows } else { len },
+            }
+        })
+        .collect();
+    // Per-chunk partial gradients of row-invariant inputs must stay small.
+    let inv_in: usize = (0..n_in).filter(|&k| !ext[k].row).map(|k| ext[k].w).sum();
+    if rowed && inv_in.saturating_mul(n_chunks) > 1 << 24 {
+        return None;
+    }
+    // Liveness for the backward: a node's gradient is nonzero only along rg nodes.
+    let mut live = vec![false; nn];
+    for &t in &dag.targets {
+        live[t] = dag.nodes[t].rg;
+    }
+    for j in (0..nn).rev() {
+        if !live[j] {
+            continue;
+        }
+        for &a in &dag.nodes[j].args {
+            if let Arg::Node(i) = a {
+                live[i] |= dag.nodes[i].rg;
+            }
+        }
+    }
+    let mut ext_live = vec![false; n_in];
+    let mut nodes = Vec::with_capacity(nn);
+    for (j, n) in dag.nodes.iter().enumerate() {
+        let row = role[j] == Some(true);
+        let len: usize = n.shape.iter().product();
+        let w = if row { len / n_rows } else { len };
+        let mut args = SmallVec::new();
+        let mut arg_shapes = Vec::new();
+        let mut lane = 1;
+        for &a in &n.args {
+            let s = ext_shape(a);
+            arg_shapes.push(s.to_vec());
+            let (src, arow) = match a {
+                Arg::Ext(k) => {
+                    if live[j] {
+                        ext_live[k] = true;
+                    }
+                    (Src::Ext(k), ext[k].row)
+                }
+                Arg::Data(d) => (Src::Ext(n_in + d), ext[n_in + d].row),
+                Arg::Node(i) => (Src::Node(i), role[i] == Some(true)),
+            };
+            let acc = match n.kind {
+                Kind::SumLast(_) | Kind::Normalize(_) => {
+                    lane = *s.last().expect("checked at record time");
+                    Access::Full
+                }
+                _ => access(&n.shape, row, s, arow),
+            };
+            args.push((src, acc));
+        }
+        nodes.push(PNode {
+            kind: n.kind,
+            args,
+            row,
+            w,
+            lane,
+            live: live[j],
+            slot: n.slot,
+            arg_shapes: arg_shapes
+                .into_iter()
+                .enumerate()
+                .filter(|&(k, _)| !(n.kind == Kind::Select && k == 0))
+                .map(|(_, s)| s)
+                .collect(),
+        });
+    }
+    Some(FusedOp {
+        nodes,
+        ext,
+        n_in,
+        data: dag
+            .data
+            .into_iter()
+            .map(|d| d.as_standard_layout().iter().copied().collect())
+            .collect(),
+        out_nodes: dag.targets.clone(),
+        out_shapes: dag
+            .targets
+            .iter()
+            .map(|&t| dag.nodes[t].shape.clone())
+            .collect(),
+        ext_live,
+        n_rows,
+        rows_per_chunk,
+        anomaly,
+    })
+}
+
+/// An operand of a kernel: a slice of the output's length, or one value.
+#[derive(Clone, Copy)]
+enum Opd<'a, T> {
+    S(&'a [T]),
+    C(T),
+}
+
+impl<T: Real> Opd<'_, T> {
+    #[inline(always)]
+    fn at(&self, i: usize) -> T {
+        match *self {
+            Opd::S(s) => s[i],
+            Opd::C(c) => c,
+        }
+    }
+}
+
+/// `o[i] = f(a[i], b[i])`, with the scalar cases as their own loops (vectorisable).
+#[inline(always)]
+fn ew2<T: Real>(o: &mut [T], a: Opd<T>, b: Opd<T>, f: impl Fn(T, T) -> T) {
+    let n = o.len();
+    match (a, b) {
+        (Opd::S(a), Opd::S(b)) => {
+            let (a, b) = (&a[..n], &b[..n]);
+            for i in 0..n {
+                o[i] = f(a[i], b[i]);
+            }
+        }
+        (Opd::S(a), Opd::C(b)) => {
+            let a = &a[..n];
+            for i in 0..n {
+                o[i] = f(a[i], b);
+            }
+        }
+        (Opd::C(a), Opd::S(b)) => {
+            let b = &b[..n];
+            for i in 0..n {
+                o[i] = f(a, b[i]);
+            }
+        }
+        (Opd::C(a), Opd::C(b)) => o.iter_mut().for_each(|o| *o = f(a, b)),
+    }
+}
+
+/// `o[i] = f(g[i], a[i], b[i])`.
+#[inline(always)]
+fn ew3<T: Real>(o: &mut [T], g: &[T], a: Opd<T>, b: Opd<T>, f: impl Fn(T, T, T) -> T) {
+    let n = o.len();
+    let g = &g[..n];
+    match (a, b) {
+        (Opd::S(a), Opd::S(b)) => {
+            let (a, b) = (&a[..n], &b[..n]);
+            for i in 0..n {
+                o[i] = f(g[i], a[i], b[i]);
+            }
+        }
+        (Opd::S(a), Opd::C(b)) => {
+            let a = &a[..n];
+            for i in 0..n {
+                o[i] = f(g[i], a[i], b);
+            }
+        }
+        (Opd::C(a), Opd::S(b)) => {
+            let b = &b[..n];
+            for i in 0..n {
+                o[i] = f(g[i], a, b[i]);
+            }
+        }
+        (Opd::C(a), Opd::C(b)) => {
+            for i in 0..n {
+                o[i] = f(g[i], a, b);
+            }
+        }
+    }
+}
+
+/// `o[i] = f(x[i])` with the fast `f32` kernel where `ok`, `exact` elsewhere (as the eager
+/// `map1_fast`).
+#[inline(always)]
+fn ew1_fast<T: Real>(
+    o: &mut [T],
+    x: &[T],
+    fast: impl Fn(T) -> T,
+    ok: impl Fn(T) -> bool,
+    exact: impl Fn(T) -> T,
+) {
+    let n = o.len();
+    let x = &x[..n];
+    if T::FAST_MATH {
+        for i in 0..n {
+            o[i] = fast(x[i]);
+        }
+        if !x.iter().fold(true, |acc, &v| acc & ok(v)) {
+            for i in 0..n {
+                if !ok(x[i]) {
+                    o[i] = exact(x[i]);
+                }
+            }
+        }
+    } else {
+        for i in 0..n {
+            o[i] = exact(x[i]);
+        }
+    }
+}
+
+/// `o[i] = f(g[i], x[i])` fast where `ok(x)`, exact elsewhere (as the eager `map2_fast`).
+#[inline(always)]
+fn ew2_fast<T: Real>(
+    o: &mut [T],
+    g: &[T],
+    x: &[T],
+    fast: impl Fn(T, T) -> T,
+    ok: impl Fn(T) -> bool,
+    exact: impl Fn(T, T) -> T,
+) {
+    let n = o.len();
+    let (g, x) = (&g[..n], &x[..n]);
+    if T::FAST_MATH {
+        for i in 0..n {
+            o[i] = fast(g[i], x[i]);
+        }
+        if !x.iter().fold(true, |acc, &v| acc & ok(v)) {
+            for i in 0..n {
+                if !ok(x[i]) {
+                    o[i] = exact(g[i], x[i]);
+                }
+            }
+        }
+    } else {
+        for i in 0..n {
+            o[i] = exact(g[i], x[i]);
+        }
+    }
+}
+
+#[inline(always)]
+fn unary_fwd<T: Real>(k: Unary<T>, o: &mut [T], x: &[T]) {
+    let z = T::zero();
+    let x = Opd::S(x);
+    let d = Opd::C(z);
+    match k {
+        Unary::Neg => ew2(o, x, d, |v, _| -v),
+        Unary::Exp => ew1_fast(o, at_s(x), T::k_exp, T::k_exp_ok, T::exp),
+        Unary::Log => ew2(o, x, d, |v, _| v.ln()),
+        Unary::Sqrt => ew2(o, x, d, |v, _| v.sqrt()),
+        Unary::Sin => ew1_fast(o, at_s(x), T::k_sin, T::k_trig_ok, T::sin),
+        Unary::Cos => ew1_fast(o, at_s(x), T::k_cos, T::k_trig_ok, T::cos),
+        Unary::Tanh => ew1_fast(o, at_s(x), T::k_tanh, |v| !v.is_nan(), T::tanh),
+        Unary::Sigmoid => ew1_fast(o, at_s(x), T::k_sigmoid, |v| (-v.abs()).k_exp_ok(), sigmoid),
+        Unary::Relu => ew2(o, x, d, |v, z| if v < z { z } else { v }),
+        Unary::Abs => ew2(o, x, d, |v, _| v.abs()),
+        Unary::Square => ew2(o, x, d, |v, _| v * v),
+        Unary::Recip => ew2(o, x, d, |v, _| v.recip()),
+        Unary::AddScalar(c) => ew2(o, x, Opd::C(c), |v, c| v + c),
+        Unary::MulScalar(c) => ew2(o, x, Opd::C(c), |v, c| v * c),
+        Unary::RSubScalar(c) => ew2(o, x, Opd::C(c), |v, c| c - v),
+        Unary::RDivScalar(c) => ew2(o, x, Opd::C(c), |v, c| c / v),
+        Unary::PowScalar(c) => ew2(o, x, Opd::C(c), |v, c| v.powf(c)),
+        Unary::ScalarPow(c) => ew2(o, x, Opd::C(c), |v, c| c.powf(v)),
+        Unary::Clamp(lo, hi) => ew2(o, x, d, |v, _| {
+            if v < lo {
+                lo
+            } else if v > hi {
+                hi
+            } else {
+                v
+            }
+        }),
+    }
+}
+
+#[inline(always)]
+fn at_s<T>(x: Opd<'_, T>) -> &[T] {
+    match x {
+        Opd::S(s) => s,
+        Opd::C(_) => unreachable!("unary arguments are full slices"),
+    }
+}
+
+/// The input's gradient contribution of a unary node (the eager `UnaryOp::grad` formulas).
+#[inline(always)]
+fn unary_bwd<T: Real>(k: Unary<T>, o: &mut [T], g: &[T], x: &[T], y: &[T]) {
+    let (z, one, two) = (T::zero(), T::one(), T::one() + T::one());
+    let (xs, ys) = (Opd::S(x), Opd::S(y));
+    let d = Opd::C(z);
+    match k {
+        Unary::Neg => ew3(o, g, d, d, |g, _, _| -g),
+        Unary::Exp => ew3(o, g, ys, d, |g, y, _| g * y),
+        Unary::Log => ew3(o, g, xs, d, |g, x, _| g / x),
+        Unary::Sqrt => ew3(o, g, ys, d, |g, y, _| g / (two * y)),
+        Unary::Sin => ew2_fast(
+            o,
+            g,
+            x,
+            |g, x| g * x.k_cos(),
+            |x| x.k_trig_ok(),
+            |g, x| g * x.cos(),
+        ),
+        Unary::Cos => ew2_fast(
+            o,
+            g,
+            x,
+            |g, x| -g * x.k_sin(),
+            |x| x.k_trig_ok(),
+            |g, x| -g * x.sin(),
+        ),
+        Unary::Tanh => ew3(o, g, ys, d, |g, y, _| g * (one - y * y)),
+        Unary::Sigmoid => ew3(o, g, ys, d, |g, y, _| g * y * (one - y)),
+        Unary::Relu => ew3(o, g, xs, d, |g, x, z| if x > z { g } else { z }),
+        Unary::Abs => ew3(o, g, xs, d, |g, x, z| {
+            g * x.signum() * T::from_f64c((x != z) as u8 as f64)
+        }),
+        Unary::Square => ew3(o, g, xs, d, |g, x, _| two * g * x),
+        Unary::Recip => ew3(o, g, ys, d, |g, y, _| -g * y * y),
+        Unary::AddScalar(_) => ew3(o, g, d, d, |g, _, _| g),
+        Unary::MulScalar(c) => ew3(o, g, d, d, |g, _, _| g * c),
+        Unary::RSubScalar(_) => ew3(o, g, d, d, |g, _, _| -g),
+        Unary::RDivScalar(_) => ew3(o, g, xs, ys, |g, x, y| -g * y / x),
+        Unary::PowScalar(c) => ew3(o, g, xs, d, |g, x, z| {
+            if c == z {
+                z
+            } else {
+                g * c * x.powf(c - one)
+            }
+        }),
+        Unary::ScalarPow(c) => ew3(o, g, ys, d, |g, y, _| g * y * c.ln()),
+        Unary::Clamp(lo, hi) => ew3(
+            o,
+            g,
+            xs,
+            d,
+            |g, x, z| {
+                if x >= lo && x <= hi {
+                    g
+                } else {
+                    z
+                }
+            },
+        ),
+    }
+}
+
+#[inline(always)]
+fn binary_fwd<T: Real>(k: Binary, o: &mut [T], a: Opd<T>, b: Opd<T>) {
+    let half = T::from_f64c(0.5);
+    match k {
+        Binary::Add => ew2(o, a, b, |x, y| x + y),
+        Binary::Sub => ew2(o, a, b, |x, y| x - y),
+        Binary::Mul => ew2(o, a, b, |x, y| x * y),
+        Binary::Div => ew2(o, a, b, |x, y| x / y),
+        Binary::Pow => ew2(o, a, b, |x, y| x.powf(y)),
+        Binary::Min => ew2(o, a, b, |x, y| {
+            if x < y {
+                x
+            } else if y < x {
+                y
+            } else {
+                half * (x + y)
+            }
+        }),
+        Binary::Max => ew2(o, a, b, |x, y| {
+            if x > y {
+                x
+            } else if y > x {
+                y
+            } else {
+                half * (x + y)
+            }
+        }),
+    }
+}
+
+/// Gradient contribution to argument `k` of a binary node (the eager `BinaryOp::grads`
+/// formulas), in the output's layout.
+#[inline(always)]
+fn binary_bwd<T: Real>(kind: Binary, k: usize, o: &mut [T], g: &[T], a: Opd<T>, b: Opd<T>) {
+    let (z, one, half) = (T::zero(), T::one(), T::from_f64c(0.5));
+    match (kind, k) {
+        (Binary::Add, _) | (Binary::Sub, 0) => ew3(o, g, a, b, |g, _, _| g),
+        (Binary::Sub, _) => ew3(o, g, a, b, |g, _, _| -g),
+        (Binary::Mul, 0) => ew3(o, g, a, b, |g, _, b| g * b),
+        (Binary::Mul, _) => ew3(o, g, a, b, |g, a, _| g * a),
+        (Binary::Div, 0) => ew3(o, g, a, b, |g, _, b| g / b),
+        (Binary::Div, _) => ew3(o, g, a, b, |g, a, b| -g * a / (b * b)),
+        (Binary::Pow, 0) => ew3(
+            o,
+            g,
+            a,
+            b,
+            |g, a, b| {
+                if b == z {
+                    z
+                } else {
+                    g * b * a.powf(b - one)
+                }
+            },
+        ),
+        (Binary::Pow, _) => ew3(
+            o,
+            g,
+            a,
+            b,
+            |g, a, b| {
+                if a == z {
+                    z
+                } else {
+                    g * a.powf(b) * a.ln()
+                }
+            },
+        ),
+        (Binary::Min | Binary::Max, _) => {
+            let want_less = (kind == Binary::Min) == (k == 0);
+            ew3(o, g, a, b, |g, a, b| {
+                if a == b {
+                    g * half
+                } else if (a < b) == want_less {
+                    g
+                } else {
+                    z
+                }
+            })
+        }
+    }
+}
+
+/// Per-thread buffers of the chunk interpreter.
+struct Scratch<T> {
+    vals: Vec<Vec<T>>,
+    grads: Vec<Vec<T>>,
+    gset: Vec<bool>,
+    egrads: Vec<Vec<T>>,
+    eset: Vec<bool>,
+    exp: [Vec<T>; 3],
+    tmp: Vec<T>,
+    red: Vec<T>,
+}
+
+impl<T: Real> Scratch<T> {
+    fn new(nodes: usize, ext: usize) -> Self {
+        Scratch {
+            vals: (0..nodes).map(|_| Vec::new()).collect(),
+            grads: (0..nodes).map(|_| Vec::new()).collect(),
+            gset: vec![false; nodes],
+            egrads: (0..ext).map(|_| Vec::new()).collect(),
+            eset: vec![false; ext],
+            exp: [Vec::new(), Vec::new(), Vec::new()],
+            tmp: Vec::new(),
+            red: Vec::new(),
+        }
+    }
+}
+
+fn sized<T: Real>(v: &mut Vec<T>, n: usize) -> &mut [T] {
+    if v.len() != n {
+        v.resize(n, T::zero());
+    }
+    &mut v[..]
+}
+
+/// Rows `r0..r1` of one chunk and the external values.
+struct Chunk<'a, T> {
+    ext: &'a [&'a [T]],
+    r0: usize,
+    r1: usize,
+}
+
+impl<T: Real> FusedOp<T> {
+    fn local_len(&self, row: bool, w: usize, c: &Chunk<'_, T>) -> usize {
+        if row {
+            (c.r1 - c.r0) * w
+        } else {
+            w
+        }
+    }
+
+    fn ext_slice<'a>(&self, k: usize, c: &Chunk<'a, T>) -> &'a [T] {
+        let e = self.ext[k];
+        if e.row {
+            &c.ext[k][c.r0 * e.w..c.r1 * e.w]
+        } else {
+            c.ext[k]
+        }
+    }
+
+    /// The operand of argument `(src, acc)` of a node with local length `n`: expanded into
+    /// `buf` when the access is a general broadcast.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn operand<'a>(
+        &self,
+        src: Src,
+        acc: &Access,
+        n: usize,
+        w: usize,
+        vals: &'a [Vec<T>],
+        c: &Chunk<'a, T>,
+        buf: &'a mut Vec<T>,
+    ) -> Opd<'a, T> {
+        let base: &'a [T] = match src {
+            Src::Ext(k) => self.ext_slice(k, c),
+            Src::Node(i) => &vals[i],
+        };
+        match acc {
+            Access::Full => Opd::S(base),
+            Access::Scalar if n > 1 => Opd::C(base[0]),
+            Access::Scalar => Opd::S(&base[..1]),
+            Access::Expand { map, rstride } => {
+                let o = sized(buf, n);
+                let rows = n / w.max(1);
+                for r in 0..rows {
+                    let src = &base[r * rstride..];
+                    for (o, &m) in o[r * w..(r + 1) * w].iter_mut().zip(map) {
+                        *o = src[m as usize];
+                    }
+                }
+                Opd::S(&buf[..])
+            }
+        }
+    }
+
+    /// Evaluates every node on one chunk into `s.vals`; with anomaly checks on, returns the
+    /// first node holding a non-finite value.
+    #[inline(always)]
+    fn eval_forward(&self, c: &Chunk<'_, T>, s: &mut Scratch<T>) -> Option<usize> {
+        let mut bad = None;
+        let [e0, e1, e2] = &mut s.exp;
+        for (j, nd) in self.nodes.iter().enumerate() {
+            let n = self.local_len(nd.row, nd.w, c);
+            let (done, rest) = s.vals.split_at_mut(j);
+            let out = sized(&mut rest[0], n);
+            let done: &[Vec<T>] = done;
+            match nd.kind {
+                Kind::Unary(k) => {
+                    let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
+                    unary_fwd(k, out, at_s(x));
+                }
+                Kind::Binary(k) => {
+                    let a = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
+                    let b = self.operand(nd.args[1].0, &nd.args[1].1, n, nd.w, done, c, e1);
+                    binary_fwd(k, out, a, b);
+                }
+                Kind::MulSelf => {
+                    let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
+                    ew2(out, x, x, |x, y| x * y);
+                }
+                Kind::Select => {
+                    let m = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
+                    let a = self.operand(nd.args[1].0, &nd.args[1].1, n, nd.w, done, c, e1);
+                    let b = self.operand(nd.args[2].0, &nd.args[2].1, n, nd.w, done, c, e2);
+                    let z = T::zero();
+                    for (i, o) in out.iter_mut().enumerate() {
+                        *o = if m.at(i) != z { a.at(i) } else { b.at(i) };
+                    }
+                }
+                Kind::SumLast(_) => {
+                    let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
+                    let x = at_s(x);
+                    let k = nd.lane;
+                    for (o, lane) in out.iter_mut().zip(x.chunks_exact(k)) {
+                        let mut acc = T::zero();
+                        for &v in lane {
+                            acc += v;
+                        }
+                        *o = acc;
+                    }
+                }
+                Kind::Normalize(eps) => {
+                    let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
+                    let x = at_s(x);
+                    let k = nd.lane;
+                    for (o, lane) in out.chunks_exact_mut(k).zip(x.chunks_exact(k)) {
+                        let len = lane.iter().map(|&v| v * v).sum::<T>().sqrt();
+                        let nrm = if len < eps { eps } else { len };
+                        for (o, &v) in o.iter_mut().zip(lane) {
+                            *o = v / nrm;
+                        }
+                    }
+                }
+            }
+            if self.anomaly && bad.is_none() && !out.iter().all(|v| v.is_finite()) {
+                bad = Some(j);
+            }
+        }
+        bad
+    }
+
+    /// Adds a gradient contribution `contrib` (in the node's output layout) to argument
+    /// `(src, acc)`: reduced to the argument's layout first, then stored or added (as the
+    /// eager tape's `sum_to_shape` and accumulation).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn accumulate(
+        &self,
+        src: Src,
+        acc: &Access,
+        w: usize,
+        contrib: &[T],
+        grads: &mut [Vec<T>],
+        gset: &mut [bool],
+        s_egrads: &mut [Vec<T>],
+        s_eset: &mut [bool],
+        red: &mut Vec<T>,
+        c: &Chunk<'_, T>,
+    ) {
+        let (buf, set, alen) = match src {
+            Src::Ext(k) => {
+                let e = self.ext[k];
+                (
+                    &mut s_egrads[k],
+                    &mut s_eset[k],
+                    self.local_len(e.row, e.w, c),
+                )
+            }
+            Src::Node(i) => {
+                let nd = &self.nodes[i];
+                (&mut grads[i], &mut gset[i], self.local_len(nd.row, nd.w, c))
+            }
+        };
+        let reduced: &[T] = match acc {
+            Access::Full => contrib,
+            Access::Scalar => {
+                let r = sized(red, 1);
+                let mut a = T::zero();
+                for &v in contrib {
+                    a += v;
+                }
+                r[0] = a;
+                r
+            }
+            Access::Expand { map, rstride } => {
+                let r = sized(red, alen);
+                r.iter_mut().for_each(|v| *v = T::zero());
+                let rows = contrib.len() / w.max(1);
+                for row in 0..rows {
+                    let g = &contrib[row * w..(row + 1) * w];
+                    let base = row * rstride;
+                    for (&gv, &m) in g.iter().zip(map) {
+                        r[base + m as usize] += gv;
+                    }
+                }
+                r
+            }
+        };
+        if *set {
+            for (a, &v) in buf.iter_mut().zip(reduced) {
+                *a += v;
+            }
+        } else {
+            sized(buf, alen).copy_from_slice(&reduced[..alen]);
+            *set = true;
+        }
+    }
+
+    /// The reverse sweep over one chunk whose forward is in `s.vals` and whose output
+    /// gradients are in `s.grads` (flags `s.gset`); external gradients end in `s.egrads`.
+    /// With anomaly checks on, returns the last node (first in the sweep) whose backward gave
+    /// a non-finite value.
+    #[inline(always)]
+    fn eval_backward(&self, c: &Chunk<'_, T>, s: &mut Scratch<T>, needs: &[bool]) -> Option<usize> {
+        let mut bad = None;
+        let Scratch {
+            vals,
+            grads,
+            gset,
+            egrads,
+            eset,
+            exp,
+            tmp,
+            red,
+        } = s;
+        let [e0, e1, e2] = exp;
+        for (j, nd) in self.nodes.iter().enumerate().rev() {
+            if !nd.live || !gset[j] {
+                continue;
+            }
+            let n = self.local_len(nd.row, nd.w, c);
+            let (gbelow, grest) = grads.split_at_mut(j);
+            let g: &[T] = &grest[0][..n];
+            let (gsb, _) = gset.split_at_mut(j);
+            let vals: &[Vec<T>] = vals;
+            let y: &[T] = &vals[j];
+            let wants = |src: Src| match src {
+                Src::Ext(k) => k < self.n_in && needs[k],
+                Src::Node(i) => self.nodes[i].live,
+            };
+            let mut check = |v: &[T]| {
+                if self.anomaly && bad.is_none() && !v.iter().all(|v| v.is_finite()) {
+                    bad = Some(j);
+                }
+            };
+            macro_rules! give {
+                ($src:expr, $acc:expr, $contrib:expr) => {{
+                    let contrib: &[T] = $contrib;
+                    check(contrib);
+                    self.accumulate($src, $acc, nd.w, contrib, gbelow, gsb, egrads, eset, red, c);
+                }};
+            }
+            match nd.kind {
+                Kind::Unary(k) => {
+                    let (src, acc) = (nd.args[0].0, &nd.args[0].1);
+                    if wants(src) {
+                        let x = at_s(self.operand(src, acc, n, nd.w, vals, c, e0));
+                        let t = sized(tmp, n);
+                        unary_bwd(k, t, g, x, y);
+                        give!(src, acc, t);
+                    }
+                }
+                Kind::Binary(kind) => {
+                    let a = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, vals, c, e0);
+                    let b = self.operand(nd.args[1].0, &nd.args[1].1, n, nd.w, vals, c, e1);
+                    for k in 0..2 {
+                        let (src, acc) = (nd.args[k].0, &nd.args[k].1);
+                        if wants(src) {
+                            let t = sized(tmp, n);
+                            binary_bwd(kind, k, t, g, a, b);
+                            give!(src, acc, t);
+                        }
+                    }
+                }
+                Kind::MulSelf => {
+                    let (src, acc) = (nd.args[0].0, &nd.args[0].1);
+                    if wants(src) {
+                        let x = self.operand(src, acc, n, nd.w, vals, c, e0);
+                        let t = sized(tmp, n);
+                        ew3(t, g, x, Opd::C(T::zero()), |g, x, _| {
+                            let t = g * x;
+                            t + t
+                        });
+                        give!(src, acc, t);
+                    }
+                }
+                Kind::Select => {
+                    let m = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, vals, c, e0);
+                    let z = T::zero();
+                    for k in 1..3 {
+                        let (src, acc) = (nd.args[k].0, &nd.args[k].1);
+                        if wants(src) {
+                            let take = k == 1;
+                            let t = sized(tmp, n);
+                            for (i, o) in t.iter_mut().enumerate() {
+                                *o = if (m.at(i) != z) == take { g[i] } else { z };
+                            }
+                            give!(src, acc, t);
+                        }
+                    }
+                }
+                Kind::SumLast(_) => {
+                    let (src, acc) = (nd.args[0].0, &nd.args[0].1);
+                    if wants(src) {
+                        let k = nd.lane;
+                        let t = sized(tmp, n * k);
+                        for (o, &gv) in t.chunks_exact_mut(k).zip(g) {
+                            o.iter_mut().for_each(|o| *o = gv);
+                        }
+                        give!(src, acc, t);
+                    }
+                }
+                Kind::Normalize(eps) => {
+                    let (src, acc) = (nd.args[0].0, &nd.args[0].1);
+                    if wants(src) {
+                        let x = at_s(self.operand(src, acc, n, nd.w, vals, c, e2));
+                        let k = nd.lane;
+                        let t = sized(tmp, n);
+                        for (((o, x), y), g) in t
+                            .chunks_exact_mut(k)
+                            .zip(x.chunks_exact(k))
+                            .zip(y.chunks_exact(k))
+                            .zip(g.chunks_exact(k))
+                        {
+                            let len = x.iter().map(|&v| v * v).sum::<T>().sqrt();
+                            if len > eps {
+                                let yg: T = y.iter().zip(g.iter()).map(|(&a, &b)| a * b).sum();
+                                for ((o, &yv), &gv) in o.iter_mut().zip(y).zip(g) {
+                                    *o = (gv - yv * yg) / len;
+                                }
+                            } else {
+                                for (o, &gv) in o.iter_mut().zip(g) {
+                                    *o = gv / eps;
+                                }
+                            }
+                        }
+                        give!(src, acc, t);
+                    }
+                }
+            }
+        }
+        bad
+    }
+
+    fn n_chunks(&self) -> usize {
+        self.n_rows.div_ceil(self.rows_per_chunk).max(1)
+    }
+
+    fn chunk<'a>(&self, i: usize, ext: &'a [&'a [T]]) -> Chunk<'a, T> {
+        let r0 = i * self.rows_per_chunk;
+        Chunk {
+            ext,
+            r0,
+            r1: (r0 + self.rows_per_chunk).min(self.n_rows.max(1)),
+        }
+    }
+
+    /// Runs `f` over the chunks (in parallel when the work is large), results in chunk order.
+    fn over_chunks<R: Send>(&self, f: impl Fn(usize, &mut Scratch<T>) -> R + Sync) -> Vec<R> {
+        let nc = self.n_chunks();
+        let work: usize = self
+            .nodes
+            .iter()
+            .map(|n| if n.row { n.w * self.n_rows } else { n.w })
+            .sum();
+        let make = || Scratch::new(self.nodes.len(), self.ext.len());
+        if nc > 1 && work >= PAR_MIN_LEN {
+            (0..nc)
+                .into_par_iter()
+                .map_init(make, |s, i| f(i, s))
+                .collect()
+        } else {
+            let mut s = make();
+            (0..nc).map(|i| f(i, &mut s)).collect()
+        }
+    }
+
+    fn ext_values<'a>(&'a self, inputs: &'a [Cow<'a, [T]>]) -> Vec<&'a [T]> {
+        inputs
+            .iter()
+            .map(|c| &c[..])
+            .chain(self.data.iter().map(|d| &d[..]))
+            .collect()
+    }
+
+    fn anomaly_error(&self, j: usize, pass: Pass) -> AutodiffError {
+        let nd = &self.nodes[j];
+        AutodiffError::Anomaly {
+            op: nd.kind.name(),
+            node: nd.slot as usize,
+            pass,
+            input_shapes: nd.arg_shapes.clone(),
+        }
+    }
+}
+
+/// A raw pointer shared by the chunks, each writing its own disjoint range.
+#[derive(Clone, Copy)]
+struct SyncPtr<T>(*mut T);
+// SAFETY: chunks write disjoint ranges (their own rows) and the buffer outlives the loop.
+unsafe impl<T: Send> Send for SyncPtr<T> {}
+// SAFETY: as above.
+unsafe impl<T: Send> Sync for SyncPtr<T> {}
+
+impl<T> SyncPtr<T> {
+    /// # Safety
+    /// `at..at + src.len()` lies in the buffer and no other thread writes it.
+    unsafe fn write(self, at: usize, src: &[T])
+    where
+        T: Copy,
+    {
+        std::ptr::copy_nonoverlapping(src.as_ptr(), self.0.add(at), src.len());
+    }
+}
+
+/// Flat row-major values of the inputs.
+fn flat<'a, T: Real>(inputs: &[&'a Tensor<T>]) -> Vec<Cow<'a, [T]>> {
+    inputs
+        .iter()
+        .map(|t| match t.as_slice() {
+            Some(s) => Cow::Borrowed(s),
+            None => Cow::Owned(t.iter().copied().collect()),
+        })
+        .collect()
+}
+
+/// The chunk interpreter compiled for the baseline target, AVX2 + FMA and AVX-512 (chosen at
+/// run time; the same IEEE operations in each, so the same bits).
+macro_rules! multiversion {
+    ($name:ident, $body:ident, ($($a:ident: $t:ty),*) -> $r:ty) => {
+        fn $name<T: Real>(op: &FusedOp<T>, $($a: $t),*) -> $r {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
+                unsafe fn wide512<T: Real>(op: &FusedOp<T>, $($a: $t),*) -> $r {
+                    op.$body($($a),*)
+                }
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn wide<T: Real>(op: &FusedOp<T>, $($a: $t),*) -> $r {
+                    op.$body($($a),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx512f")
+                    && std::arch::is_x86_feature_detected!("avx512vl")
+                    && std::arch::is_x86_feature_detected!("avx512dq")
+                    && std::arch::is_x86_feature_detected!("avx512bw")
+                {
+                    // SAFETY: the CPU has the features `wide512` is compiled for.
+                    return unsafe { wide512(op, $($a),*) };
+                }
+                if std::arch::is_x86_feature_detected!("avx2")
+                    && std::arch::is_x86_feature_detected!("fma")
+                {
+                    // SAFETY: the CPU has the features `wide` is compiled for.
+                    return unsafe { wide(op, $($a),*) };
+                }
+            }
+            op.$body($($a),*)
+        }
+    };
+}
+
+multiversion!(forward_chunk, eval_forward, (c: &Chunk<'_, T>, s: &mut Scratch<T>) -> Option<usize>);
+multiversion!(backward_chunk, eval_backward, (c: &Chunk<'_, T>, s: &mut Scratch<T>, needs: &[bool]) -> Option<usize>);
+
+impl<T: Real> Op<T> for FusedOp<T> {
+    fn name(&self) -> &'static str {
+        "fused"
+    }
+
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+        let this = &*self;
+        let flat = flat(inputs);
+        let ext = this.ext_values(&flat);
+        let mut outs: Vec<Vec<T>> = this
+            .out_shapes
+            .iter()
+            .map(|s| Vec::with_capacity(s.iter().product()))
+            .collect();
+        let ptrs: Vec<SyncPtr<T>> = outs.iter_mut().map(|o| SyncPtr(o.as_mut_ptr())).collect();
+        let bad = this.over_chunks(|i, s| {
+            let c = this.chunk(i, &ext);
+            let bad = forward_chunk(this, &c, s);
+            for (&j, p) in this.out_nodes.iter().zip(&ptrs) {
+                let nd = &this.nodes[j];
+                let at = if nd.row { c.r0 * nd.w } else { 0 };
+                // SAFETY: rows r0..r1 of this output are written by this chunk only; the
+                // buffer has room for all rows.
+                unsafe { p.write(at, &s.vals[j]) };
+            }
+            bad
+        });
+        if let Some(j) = bad.into_iter().flatten().min() {
+            return Err(this.anomaly_error(j, Pass::Forward));
+        }
+        Ok(outs
+            .into_iter()
+            .zip(&this.out_shapes)
+            .map(|(mut v, shape)| {
+                // SAFETY: every chunk wrote its rows of every output, which cover all of it
+                // (non-row outputs exist only with one chunk).
+                unsafe { v.set_len(shape.iter().product()) };
+                Tensor::from_shape_vec(ndarray::IxDyn(shape), v).expect("output shape")
+            })
+            .collect())
+    }
+
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+        let flat = flat(ctx.inputs);
+        let ext = self.ext_values(&flat);
+        let gouts: Vec<Cow<'_, [T]>> = flat_refs(ctx.grad_outputs);
+        let needs: Vec<bool> = (0..self.n_in)
+            .map(|k| ctx.needs_grad[k] && self.ext_live[k])
+            .collect();
+        let mut row_grads: Vec<Option<Vec<T>>> = (0..self.n_in)
+            .map(|k| {
+                (needs[k] && self.ext[k].row)
+                    .then(|| Vec::with_capacity(self.ext[k].w * self.n_rows))
+            })
+            .collect();
+        let ptrs: Vec<Option<SyncPtr<T>>> = row_grads
+            .iter_mut()
+            .map(|g| g.as_mut().map(|g| SyncPtr(g.as_mut_ptr())))
+            .collect();
+        let results = self.over_chunks(|i, s| {
+            let c = self.chunk(i, &ext);
+            forward_chunk(self, &c, s);
+            s.gset.iter_mut().for_each(|f| *f = false);
+            s.eset.iter_mut().for_each(|f| *f = false);
+            for (&j, g) in self.out_nodes.iter().zip(&gouts) {
+                let nd = &self.nodes[j];
+                if !nd.live {
+                    continue;
+                }
+                let n = self.local_len(nd.row, nd.w, &c);
+                let at = if nd.row { c.r0 * nd.w } else { 0 };
+                let part = &g[at..at + n];
+                if s.gset[j] {
+                    for (a, &v) in s.grads[j].iter_mut().zip(part) {
+                        *a += v;
+                    }
+                } else {
+                    sized(&mut s.grads[j], n).copy_from_slice(part);
+                    s.gset[j] = true;
+                }
+            }
+            let bad = backward_chunk(self, &c, s, &needs);
+            let mut partials: Vec<Option<Vec<T>>> = Vec::new();
+            for k in 0..self.n_in {
+                if !needs[k] {
+                    partials.push(None);
+                    continue;
+                }
+                let e = self.ext[k];
+                let n = self.local_len(e.row, e.w, &c);
+                if !s.eset[k] {
+                    sized(&mut s.egrads[k], n)
+                        .iter_mut()
+                        .for_each(|v| *v = T::zero());
+                }
+                if e.row {
+                    let p = ptrs[k].expect("row gradient buffer");
+                    // SAFETY: this chunk's rows of input k, written by this chunk only.
+                    unsafe { p.write(c.r0 * e.w, &s.egrads[k][..n]) };
+                    partials.push(None);
+                } else {
+                    partials.push(Some(s.egrads[k][..n].to_vec()));
+                }
+            }
+            (bad, partials)
+        });
+        if let Some(j) = results.iter().filter_map(|r| r.0).max() {
+            return Err(self.anomaly_error(j, Pass::Backward));
+        }
+        let mut out = Vec::with_capacity(self.n_in);
+        let mut results = results;
+        for k in 0..self.n_in {
+            if !needs[k] {
+                out.push(None);
+                continue;
+            }
+            let shape = ctx.inputs[k].shape();
+            let v = if let Some(mut g) = row_grads[k].take() {
+                // SAFETY: every chunk wrote its rows of this gradient.
+                unsafe { g.set_len(self.ext[k].w * self.n_rows) };
+                g
+            } else {
+                // Row-invariant input: per-chunk partial sums added in chunk order.
+                let mut acc: Option<Vec<T>> = None;
+                for r in results.iter_mut() {
+                    let p = r.1[k].take().expect("partial of a needed input");
+                    match &mut acc {
+                        None => acc = Some(p),
+                        Some(a) => a.iter_mut().zip(&p).for_each(|(a, &v)| *a += v),
+                    }
+                }
+                acc.expect("at least one chunk")
+            };
+            out.push(Some(
+                Tensor::from_shape_vec(ndarray::IxDyn(shape), v).expect("input shape"),
+            ));
+        }
+        Ok(out)
+    }
+}
+
+fn flat_refs<'a, T: Real>(ts: &[&'a Tensor<T>]) -> Vec<Cow<'a, [T]>> {
+    flat(ts)
+}
