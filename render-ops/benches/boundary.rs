@@ -5,6 +5,18 @@
 //! `Scene::render` keeps the fused ops for unlit, untextured scenes; this bench measures what
 //! the composed path costs there.
 //!
+//! 2026-11-28, shared 2-core machine (noisy), medians, fused / composed:
+//!
+//! | method | 1 thread | 2 threads |
+//! |---|---|---|
+//! | opendr | 24.0 / 16.9 ms | 12.5 / 11.5 ms |
+//! | nmr | 65.0 / 58.2 ms | 47.5 / 58.6 ms |
+//! | deodr | 5.4 / 8.6 ms | 5.2 / 9.1 ms |
+//!
+//! The composed `opendr` computes only the boundary term (the interior goes through the
+//! rasterizer's barycentrics); composed `deodr` costs 1.6-1.75x the fused op and `nmr` up to
+//! 1.23x, so the pipeline keeps the fused ops for per-vertex colours.
+//!
 //! ```text
 //! cargo bench -p tapestry-render-ops --bench boundary -- --warm-up-time 1 --measurement-time 3
 //! ```
