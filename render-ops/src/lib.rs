@@ -10,6 +10,7 @@
 pub mod approx;
 pub mod blend;
 pub mod camera;
+pub mod check;
 pub mod error;
 pub mod interpolate;
 pub mod io;
