@@ -417,7 +417,10 @@ impl Registry {
         let selected: Vec<&Entry> = self
             .entries
             .iter()
-            .filter(|e| filter.map_or(true, |f| e.matches(f)))
+            .filter(|e| match filter {
+                None => true,
+                Some(f) => e.matches(f),
+            })
             .collect();
         selected.par_iter().map(|e| e.run(&opts)).collect()
     }

@@ -181,10 +181,6 @@ method_fn!(tf_mesh_case, Method::TfMesh);
 method_fn!(opendr_case, Method::OpenDr);
 method_fn!(nmr_case, Method::Nmr);
 
-/// Largest `f32`/`f64` difference of the raster cases: the `f32` rasterizer and soft
-/// kernels round edge functions and distances in `f32`.
-const RASTER_F32_TOL: f64 = 1e-3;
-
 /// The raster cases (`raster/...`) and the method cases on the octahedron (`method/...`).
 pub fn cases() -> Vec<Case> {
     let delta = Gen::Uniform(-0.05, 0.05);
@@ -198,7 +194,6 @@ pub fn cases() -> Vec<Case> {
             f64f,
         )
         .in_category("method")
-        .with_f32_tol(RASTER_F32_TOL)
     };
     let colors_only = |name: &'static str, f32f, f64f| {
         pos_colors(name, f32f, f64f).with_options(GradcheckOptions {
@@ -214,8 +209,7 @@ pub fn cases() -> Vec<Case> {
             barycentrics_case::<f32>,
             barycentrics_case::<f64>,
         )
-        .in_category("raster")
-        .with_f32_tol(RASTER_F32_TOL),
+        .in_category("raster"),
         Case::new(
             "raster/interpolate",
             vec![vec![6, 3], vec![6, 3]],
@@ -223,8 +217,7 @@ pub fn cases() -> Vec<Case> {
             interpolate_case::<f32>,
             interpolate_case::<f64>,
         )
-        .in_category("raster")
-        .with_f32_tol(RASTER_F32_TOL),
+        .in_category("raster"),
         pos_colors("method/hard", hard_case::<f32>, hard_case::<f64>),
         pos_colors("method/deodr", deodr_case::<f32>, deodr_case::<f64>),
         pos_colors("method/softras", softras_case::<f32>, softras_case::<f64>),
