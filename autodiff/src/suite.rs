@@ -13,8 +13,30 @@
 //! assert!(results.len() >= 6 && results.iter().all(|r| r.passed));
 //! println!("{}", autodiff::suite::render_table(&results));
 //! ```
+//!
+//! [`Registry`] is the one list that `tapestry gradcheck --all` runs: the built-in cases
+//! (category `autodiff`), the crates' cases (`render_ops::check::register` adds `shade`,
+//! `texture`, `raster` and `method`) and whatever user code adds, as a [`Case`] or as any
+//! check function ([`Registry::add_check`]).
+//!
+//! ```
+//! use autodiff::suite::{Case, Gen, Registry};
+//! use autodiff::{Real, Tape, Var};
+//! fn cube<'t, T: Real>(_t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
+//!     x[0] * x[0] * x[0]
+//! }
+//! let mut reg = Registry::builtin();
+//! reg.add(Case::new("my/cube", vec![vec![4]], vec![Gen::Uniform(-1.0, 1.0)], cube::<f32>, cube::<f64>)
+//!     .in_category("mine"));
+//! let results = reg.run(Some("mine"));
+//! assert_eq!(results.len(), 1);
+//! assert!(results[0].passed && results[0].category == "mine");
+//! ```
+
+use std::sync::Arc;
 
 use ndarray::{ArrayD, Dimension, IxDyn};
+use rayon::prelude::*;
 
 use crate::error::Result;
 use crate::gradcheck::{compare_precision, gradcheck, GradcheckOptions};
@@ -97,6 +119,12 @@ pub struct Case {
     pub f_f32: CaseFn<f32>,
     /// The case at `f64`.
     pub f_f64: CaseFn<f64>,
+    /// Category in a [`Registry`] (`autodiff` unless set with [`Case::in_category`]).
+    pub category: &'static str,
+    /// Gradcheck settings of this case (`None`: those given to [`Case::run`]).
+    pub options: Option<GradcheckOptions>,
+    /// Largest `f32`/`f64` difference allowed ([`F32_REL_TOL`] unless set).
+    pub f32_tol: f64,
 }
 
 impl std::fmt::Debug for Case {
@@ -106,6 +134,8 @@ impl std::fmt::Debug for Case {
             .field("shapes", &self.shapes)
             .field("gens", &self.gens)
             .field("seed", &self.seed)
+            .field("category", &self.category)
+            .field("f32_tol", &self.f32_tol)
             .finish_non_exhaustive()
     }
 }
@@ -115,6 +145,8 @@ impl std::fmt::Debug for Case {
 pub struct CaseResult {
     /// Name of the case.
     pub op: &'static str,
+    /// Its category (`autodiff`, `shade`, `texture`, `raster`, `method`, or a user's).
+    pub category: &'static str,
     /// Shapes of its inputs.
     pub shapes: Vec<Vec<usize>>,
     /// Largest absolute error of the analytic Jacobian against central differences (`f64`).
@@ -154,7 +186,29 @@ impl Case {
             seed: fnv1a(op),
             f_f32,
             f_f64,
+            category: "autodiff",
+            options: None,
+            f32_tol: F32_REL_TOL,
         }
+    }
+
+    /// The case in another category.
+    pub fn in_category(mut self, category: &'static str) -> Self {
+        self.category = category;
+        self
+    }
+
+    /// The case with its own gradcheck settings (e.g. a larger step or tolerance).
+    pub fn with_options(mut self, options: GradcheckOptions) -> Self {
+        self.options = Some(options);
+        self
+    }
+
+    /// The case with its own `f32`/`f64` tolerance (ops whose `f32` path rounds differently
+    /// by design, e.g. a rasterizer's `f32` edge tests).
+    pub fn with_f32_tol(mut self, tol: f64) -> Self {
+        self.f32_tol = tol;
+        self
     }
 
     /// The base op name (the part before `/`).
@@ -177,10 +231,11 @@ impl Case {
             .collect()
     }
 
-    /// Runs the gradient check (`opts`, normally full mode) in `f64` and the `f32`/`f64`
-    /// comparison.
+    /// Runs the gradient check (the case's own options, else `opts`, normally full mode) in
+    /// `f64` and the `f32`/`f64` comparison.
     pub fn run(&self, opts: &GradcheckOptions) -> Result<CaseResult> {
         let inputs = self.inputs();
+        let opts = self.options.as_ref().unwrap_or(opts);
         let rep = gradcheck(self.f_f64, &inputs, opts)?;
         let prec = compare_precision(self.f_f32, self.f_f64, &inputs, self.seed.rotate_left(17))?;
         let f32_rel = match prec.max_rel() {
@@ -189,26 +244,185 @@ impl Case {
         };
         Ok(CaseResult {
             op: self.op,
+            category: self.category,
             shapes: self.shapes.clone(),
             max_abs_err: rep.max_abs_err(),
             max_rel_err: rep.max_rel_err(),
             f32_rel,
-            passed: rep.passed() && f32_rel <= F32_REL_TOL,
+            passed: rep.passed() && f32_rel <= self.f32_tol,
             error: None,
         })
     }
 
     /// Like [`Case::run`], with an error turned into a failed result.
     pub fn run_or_fail(&self, opts: &GradcheckOptions) -> CaseResult {
-        self.run(opts).unwrap_or_else(|e| CaseResult {
-            op: self.op,
-            shapes: self.shapes.clone(),
+        self.run(opts)
+            .unwrap_or_else(|e| CaseResult::error(self.op, self.category, &self.shapes, e))
+    }
+}
+
+impl CaseResult {
+    /// A failed result for a check that could not run (`error` holds its message).
+    pub fn error(
+        op: &'static str,
+        category: &'static str,
+        shapes: &[Vec<usize>],
+        e: impl std::fmt::Display,
+    ) -> Self {
+        CaseResult {
+            op,
+            category,
+            shapes: shapes.to_vec(),
             max_abs_err: f64::INFINITY,
             max_rel_err: f64::INFINITY,
             f32_rel: f64::INFINITY,
             passed: false,
             error: Some(e.to_string()),
-        })
+        }
+    }
+}
+
+/// A check that is not a [`Case`]: any function returning a [`CaseResult`] (e.g. a comparison
+/// with a reference gradient by cosine, or a check over a whole scene).
+pub type CheckFn = Arc<dyn Fn() -> CaseResult + Send + Sync>;
+
+/// One entry of a [`Registry`].
+#[derive(Clone)]
+pub enum Entry {
+    /// A full-Jacobian gradcheck plus `f32`/`f64` comparison.
+    Case(Case),
+    /// Any other check.
+    Check {
+        /// Name (shown in tables, matched by filters).
+        op: &'static str,
+        /// Category.
+        category: &'static str,
+        /// The check.
+        run: CheckFn,
+    },
+}
+
+impl Entry {
+    /// Name of the entry.
+    pub fn op(&self) -> &'static str {
+        match self {
+            Entry::Case(c) => c.op,
+            Entry::Check { op, .. } => op,
+        }
+    }
+
+    /// Category of the entry.
+    pub fn category(&self) -> &'static str {
+        match self {
+            Entry::Case(c) => c.category,
+            Entry::Check { category, .. } => category,
+        }
+    }
+
+    /// Whether `filter` selects this entry: its full name, its base name (before `/`), its
+    /// category, or a substring of its name.
+    pub fn matches(&self, filter: &str) -> bool {
+        let op = self.op();
+        op == filter
+            || op.split('/').next() == Some(filter)
+            || self.category() == filter
+            || op.contains(filter)
+    }
+
+    /// Runs the entry (`opts`: the default settings of cases without their own).
+    pub fn run(&self, opts: &GradcheckOptions) -> CaseResult {
+        match self {
+            Entry::Case(c) => c.run_or_fail(opts),
+            Entry::Check { run, .. } => run(),
+        }
+    }
+}
+
+impl std::fmt::Debug for Entry {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Entry::Case(c) => c.fmt(f),
+            Entry::Check { op, category, .. } => f
+                .debug_struct("Check")
+                .field("op", op)
+                .field("category", category)
+                .finish_non_exhaustive(),
+        }
+    }
+}
+
+/// The list of gradient checks that `tapestry gradcheck` runs; user code adds its own cases.
+#[derive(Clone, Debug, Default)]
+pub struct Registry {
+    entries: Vec<Entry>,
+}
+
+impl Registry {
+    /// An empty registry.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The built-in op cases ([`builtin_cases`], category `autodiff`).
+    pub fn builtin() -> Self {
+        let mut r = Self::new();
+        for c in builtin_cases() {
+            r.add(c);
+        }
+        r
+    }
+
+    /// Adds a case.
+    pub fn add(&mut self, case: Case) -> &mut Self {
+        self.entries.push(Entry::Case(case));
+        self
+    }
+
+    /// Adds a check function under a name and category.
+    pub fn add_check(
+        &mut self,
+        op: &'static str,
+        category: &'static str,
+        run: impl Fn() -> CaseResult + Send + Sync + 'static,
+    ) -> &mut Self {
+        self.entries.push(Entry::Check {
+            op,
+            category,
+            run: Arc::new(run),
+        });
+        self
+    }
+
+    /// Every entry, in the order added.
+    pub fn entries(&self) -> &[Entry] {
+        &self.entries
+    }
+
+    /// The distinct categories, in the order first added.
+    pub fn categories(&self) -> Vec<&'static str> {
+        let mut out: Vec<&'static str> = Vec::new();
+        for e in &self.entries {
+            if !out.contains(&e.category()) {
+                out.push(e.category());
+            }
+        }
+        out
+    }
+
+    /// Runs the entries that `filter` selects ([`Entry::matches`]; all for `None`) with the
+    /// default gradcheck options, in parallel, results in registry order. An empty result
+    /// means that nothing matched.
+    pub fn run(&self, filter: Option<&str>) -> Vec<CaseResult> {
+        let opts = GradcheckOptions::default();
+        let selected: Vec<&Entry> = self
+            .entries
+            .iter()
+            .filter(|e| match filter {
+                None => true,
+                Some(f) => e.matches(f),
+            })
+            .collect();
+        selected.par_iter().map(|e| e.run(&opts)).collect()
     }
 }
 
@@ -636,6 +850,46 @@ mod tests {
         );
         assert_eq!(all.iter().filter(|c| c.matches("max")).count(), 0);
         assert!(run_all(Some("no-such-op")).is_empty());
+    }
+
+    #[test]
+    fn registry_adds_filters_and_reports_categories() {
+        let mut reg = Registry::builtin();
+        let n = reg.entries().len();
+        assert_eq!(n, builtin_cases().len());
+        reg.add(
+            case!("user/square", [[3]], [Gen::Uniform(-1.0, 1.0)], |t, x| x[0]
+                * x[0])
+            .in_category("user"),
+        );
+        reg.add_check("user/broken", "user", || CaseResult {
+            op: "user/broken",
+            category: "user",
+            shapes: vec![],
+            max_abs_err: 1.0,
+            max_rel_err: 1.0,
+            f32_rel: 0.0,
+            passed: false,
+            error: None,
+        });
+        assert_eq!(reg.categories(), vec!["autodiff", "user"]);
+        let r = reg.run(Some("user"));
+        assert_eq!(r.len(), 2);
+        assert!(r[0].passed && r[0].op == "user/square" && r[0].category == "user");
+        assert!(!r[1].passed);
+        // Full name, base name, substring.
+        assert_eq!(reg.run(Some("user/square")).len(), 1);
+        assert!(reg.run(Some("matmul")).len() >= 8);
+        assert!(reg.run(Some("no-such-op")).is_empty());
+        // A case's own tolerances replace the defaults.
+        let strict = case!("strict", [[3]], [Gen::Uniform(0.5, 1.0)], |t, x| x[0].exp())
+            .with_options(GradcheckOptions {
+                eps: 1e-2,
+                atol: 0.0,
+                rtol: 1e-12,
+                ..Default::default()
+            });
+        assert!(!strict.run_or_fail(&GradcheckOptions::default()).passed);
     }
 
     #[test]

@@ -11,6 +11,7 @@ pub mod approx;
 pub mod blend;
 pub mod boundary;
 pub mod camera;
+pub mod check;
 pub mod error;
 pub mod interpolate;
 pub mod io;

@@ -32,6 +32,11 @@ pub struct SceneVars<'t, T: Real> {
     /// vector, field of view and clip planes stay those of the scene. When this variable
     /// requires a gradient the view matrix is built on the tape ([`Scene::clip`]).
     pub camera: Var<'t, T>,
+    /// The light parameters `[n, 3]`, every light of the scene in order (an ambient light:
+    /// its colour; directional: direction, colour; point: position, colour; SH: 9 rows; see
+    /// [`crate::shade::lights::scene_light_rows`]); `None` (the scene's constant lights) unless
+    /// asked for with [`Wrt::lights`] or set.
+    pub lights: Option<Var<'t, T>>,
 }
 
 /// Which scene inputs should carry gradients.
@@ -45,6 +50,8 @@ pub struct Wrt {
     pub texture: bool,
     /// The camera's eye and look-at point (`[2, 3]`).
     pub camera: bool,
+    /// The light parameters (`[n, 3]`, [`SceneVars::lights`]).
+    pub lights: bool,
 }
 
 impl<T: Real> Scene<T> {
@@ -98,11 +105,34 @@ impl<T: Real> Scene<T> {
                 .collect(),
         )
         .expect("2 x 3");
+        let lights = wrt.lights.then(|| {
+            let rows = crate::shade::lights::scene_light_rows(&self.desc.lights);
+            let data = rows.iter().flatten().map(|&x| T::from_f64c(x)).collect();
+            tape.var(
+                ArrayD::from_shape_vec(IxDyn(&[rows.len(), 3]), data).expect("n x 3"),
+                true,
+            )
+        });
         SceneVars {
             positions: tape.var(pos, wrt.positions),
             colors: tape.var(col, wrt.colors),
             texture,
             camera: tape.var(cam, wrt.camera),
+            lights,
+        }
+    }
+
+    /// The scene's shading on the tape: its constant lights, or those of `vars.lights`.
+    pub fn shading<'t>(&self, vars: &SceneVars<'t, T>) -> SceneShading<'t, T> {
+        match vars.lights {
+            Some(rows) => {
+                SceneShading::with_light_rows(&self.desc.material, &self.desc.lights, rows)
+            }
+            None => SceneShading::new(
+                vars.positions.tape(),
+                &self.desc.material,
+                &self.desc.lights,
+            ),
         }
     }
 
@@ -126,6 +156,19 @@ impl<T: Real> Scene<T> {
         RenderError::check_finite("camera", &*vars.camera.value()?)?;
         if let Some(t) = vars.texture {
             RenderError::check_finite("texture", &*t.value()?)?;
+        }
+        if let Some(l) = vars.lights {
+            let n = crate::shade::lights::scene_light_rows(&self.desc.lights).len();
+            let v = l.value()?;
+            if v.shape() != [n, 3] {
+                return Err(autodiff::AutodiffError::shape(
+                    "scene lights",
+                    &[v.shape()],
+                    format!("the scene's light parameters are [{n}, 3]"),
+                )
+                .into());
+            }
+            RenderError::check_finite("lights", &v)?;
         }
         let faces = Arc::new(self.mesh.faces.clone());
         let clip = self.clip(vars.positions, vars);
@@ -286,11 +329,7 @@ impl<T: Real> Scene<T> {
             )));
         }
         let albedo = vars.colors * kd;
-        let shading = SceneShading::new(
-            vars.positions.tape(),
-            &self.desc.material,
-            &self.desc.lights,
-        );
+        let shading = self.shading(vars);
         if !shading.is_lit() {
             return Ok(albedo);
         }
@@ -327,7 +366,7 @@ impl<T: Real> Scene<T> {
         kd: Var<'t, T>,
     ) -> Result<Shaded<'t, T>, RenderError> {
         let t = vars.positions.tape();
-        let shading = SceneShading::new(t, &self.desc.material, &self.desc.lights);
+        let shading = self.shading(vars);
         let settings = self.raster_settings();
         let bg = self.background();
         let Some(texels) = vars.texture else {

@@ -337,6 +337,7 @@ fn textured_scene_gradcheck_positions_texels_camera() {
                 colors: v[1],
                 texture: Some(v[2]),
                 camera: v[3],
+                lights: None,
             };
             (scene.render(&vars).unwrap() * tape.constant(weights.clone())).sum()
         });
@@ -353,6 +354,7 @@ fn textured_scene_gradcheck_positions_texels_camera() {
                 colors: true,
                 texture: true,
                 camera: true,
+                lights: false,
             },
         );
         let loss = (scene.render(&vars).unwrap() * tape.constant(weights.clone())).sum();

@@ -602,31 +602,9 @@ pub fn reference_image(
     u: &[f64; 6],
     samples: usize,
 ) -> Result<Array3<f64>> {
-    let s = samples.max(1);
-    let (w, h) = (
-        scene.desc.image.width as usize,
-        scene.desc.image.height as usize,
-    );
-    let mut big = scene.clone();
-    big.desc.image.width = (w * s) as u32;
-    big.desc.image.height = (h * s) as u32;
-    big.desc.raster = Raster::with_method(Method::Hard);
-    big.camera = big
-        .desc
-        .camera()
-        .map_err(|e| BenchError::Message(e.to_string()))?;
+    let big = render_ops::check::scene::supersampled_scene(scene, samples)?;
     let img = image_at(&big, pose, u)?;
-    let c = img.dim().2;
-    let inv = 1.0 / (s * s) as f64;
-    Ok(Array3::from_shape_fn((h, w, c), |(r, col, ch)| {
-        let mut acc = 0.0;
-        for i in 0..s {
-            for j in 0..s {
-                acc += img[[r * s + i, col * s + j, ch]];
-            }
-        }
-        acc * inv
-    }))
+    Ok(render_ops::check::scene::box_downsample(&img, samples))
 }
 
 /// `sum (a - b)^2`.

@@ -1,6 +1,6 @@
 //! `tapestry grad`: L = sum over pixels and channels of (render - target)^2 and its gradient
 //! with respect to the vertex positions `[V, 3]`, vertex colours `[V, 3]`, texture texels
-//! `[H, W, C]` or camera (eye and look-at point, `[2, 3]`).
+//! `[H, W, C]`, camera (eye and look-at point, `[2, 3]`) or light parameters (`[n, 3]`).
 
 use std::path::Path;
 use std::process::ExitCode;
@@ -36,6 +36,7 @@ pub fn run(scene: &Path, target: &Path, wrt: WrtArg, out: &Path) -> Result<ExitC
             colors: wrt == WrtArg::Colors,
             texture: wrt == WrtArg::Texture,
             camera: wrt == WrtArg::Camera,
+            lights: wrt == WrtArg::Lights,
         },
     );
     let texture = match (wrt, vars.texture) {
@@ -57,6 +58,15 @@ pub fn run(scene: &Path, target: &Path, wrt: WrtArg, out: &Path) -> Result<ExitC
         WrtArg::Colors => grads.wrt(vars.colors),
         WrtArg::Texture => grads.wrt(texture.expect("checked above")),
         WrtArg::Camera => grads.wrt(vars.camera),
+        WrtArg::Lights => match vars.lights {
+            Some(l) if !l.is_empty() => grads.wrt(l),
+            _ => {
+                return Err(CliError::Message(format!(
+                    "--wrt lights: the scene {} has no lights",
+                    scene.source
+                )))
+            }
+        },
     };
     write_npy(out, &g)?;
     Ok(ExitCode::SUCCESS)

@@ -161,6 +161,43 @@ impl<'t, T: Real> Lights<'t, T> {
         out
     }
 
+    /// Lights of a scene description whose parameters are the rows of `rows` `[n, 3]`
+    /// (see [`scene_light_rows`] for the row layout), so that gradients reach them.
+    pub fn from_scene_rows(lights: &[scene::Light], rows: Var<'t, T>) -> Self {
+        let mut out = Lights::new();
+        let mut i = 0;
+        let mut row = |n: usize| {
+            let v = rows.slice(0, i, i + n);
+            i += n;
+            if n == 1 {
+                v.reshape(&[3])
+            } else {
+                v
+            }
+        };
+        for l in lights {
+            match l {
+                scene::Light::Ambient { .. } => out.ambient.push(AmbientLight { color: row(1) }),
+                scene::Light::Directional { .. } => {
+                    let direction = row(1);
+                    out.directional.push(DirectionalLight {
+                        direction,
+                        color: row(1),
+                    })
+                }
+                scene::Light::Point { .. } => {
+                    let position = row(1);
+                    out.point.push(PointLight {
+                        position,
+                        color: row(1),
+                    })
+                }
+                scene::Light::Sh { .. } => out.sh = Some(ShLight { coeffs: row(9) }),
+            }
+        }
+        out
+    }
+
     /// Stacks `f` of every light of a kind into `[L, 3]` (a `[0, 3]` constant when there are
     /// none).
     pub(crate) fn stacked<L>(
@@ -174,6 +211,29 @@ impl<'t, T: Real> Lights<'t, T> {
         let vars: Vec<Var<'t, T>> = lights.iter().map(|l| f(l).reshape(&[3])).collect();
         tape.stack(&vars, 0)
     }
+}
+
+/// Every light parameter of a scene as rows of three numbers, in scene order: an ambient
+/// light gives its `color`; a directional light its `direction`, then `color`; a point light
+/// its `position`, then `color`; an SH light its 9 coefficient rows. This is the layout of the
+/// scene input `lights` `[n, 3]` ([`crate::pipeline::SceneVars::lights`]).
+pub fn scene_light_rows(lights: &[scene::Light]) -> Vec<[f64; 3]> {
+    let mut out = Vec::new();
+    for l in lights {
+        match l {
+            scene::Light::Ambient { color } => out.push(*color),
+            scene::Light::Directional { direction, color } => {
+                out.push(*direction);
+                out.push(*color);
+            }
+            scene::Light::Point { position, color } => {
+                out.push(*position);
+                out.push(*color);
+            }
+            scene::Light::Sh { coeffs } => out.extend(coeffs.iter().copied()),
+        }
+    }
+    out
 }
 
 /// Which reflection model [`super::shade`] evaluates.

@@ -55,6 +55,20 @@ impl<'t, T: Real> SceneShading<'t, T> {
         }
     }
 
+    /// The lights and material of a scene description with the light parameters taken from
+    /// `rows` `[n, 3]` (layout of [`super::lights::scene_light_rows`]), on `rows`' tape.
+    pub fn with_light_rows(
+        material: &scene::Material,
+        lights: &[scene::Light],
+        rows: Var<'t, T>,
+    ) -> Self {
+        SceneShading {
+            shading: material.shading,
+            lights: Lights::from_scene_rows(lights, rows),
+            material: Material::from_scene(rows.tape(), material),
+        }
+    }
+
     /// Whether the colour depends on normals and lights (`shading` other than `none`).
     pub fn is_lit(&self) -> bool {
         self.shading != Shading::None

@@ -156,7 +156,7 @@ pub fn cases() -> Vec<Case> {
         Gen::Uniform(-1.0, 1.0),
     ];
     let tex = vec![vec![8, 8, 3], vec![10, 2], vec![10, 2]];
-    vec![
+    let cases = vec![
         Case::new(
             "shade/face_normals",
             vec![vec![6, 3]],
@@ -232,7 +232,19 @@ pub fn cases() -> Vec<Case> {
             trilinear_case::<f32>,
             trilinear_case::<f64>,
         ),
-    ]
+    ];
+    // Categories of the gradcheck registry: the name's prefix.
+    cases
+        .into_iter()
+        .map(|c| {
+            let cat = if c.op.starts_with("texture/") {
+                "texture"
+            } else {
+                "shade"
+            };
+            c.in_category(cat)
+        })
+        .collect()
 }
 
 /// Runs every case matching `filter` (full name or base, e.g. `shade/phong` or `shade`), all

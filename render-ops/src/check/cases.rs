@@ -1,0 +1,346 @@
+//! The rasterization and raster-method cases of the gradcheck [`Registry`], each checked for
+//! what it promises:
+//! - `raster/barycentrics`, `raster/interpolate`: rasterize (+ interpolate) of a small
+//!   octahedron, full-Jacobian `f64` gradcheck with respect to the vertex positions (and
+//!   attributes): the fragments keep their faces, barycentrics move (the interior gradient).
+//! - `method/hard`, `method/deodr`, `method/softras`, `method/dibr`: the image `[10, 10, 4]` of
+//!   the octahedron with vertex colours; positions and colours checked against central
+//!   differences of the method's own image, which these backwards differentiate exactly (hard:
+//!   interior; deodr: the overdrawn image; softras, dibr: smooth images, here with wide
+//!   `sigma`/`delta` so that the 10-pixel image is smooth at the finite-difference step).
+//! - `method/tf_mesh/colors`, `method/opendr/colors`, `method/nmr/colors`: their colour
+//!   gradient is the hard image's, exact.
+//! - `method/tf_mesh/reference`, `method/opendr/reference`, `method/nmr/reference`: their
+//!   approximate position gradients against the area-integrated reference (an icosphere,
+//!   [`super::scene::check_scene`]): cosine at least the floor of
+//!   [`super::scene::Thresholds::for_method`].
+//!
+//! Inputs are drawn so that the FD step never moves an edge across a pixel centre with any
+//! appreciable probability (small perturbations of a fixed mesh).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use autodiff::gradcheck::GradcheckOptions;
+use autodiff::suite::{Case, CaseResult, Gen, Registry};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, Var};
+use ndarray::{ArrayD, IxDyn};
+
+use super::scene::{check_scene, SceneCheckOptions, SceneInput};
+use crate::approx::{deodr, nmr, opendr, tf_mesh, ApproxSettings};
+use crate::blend::blend_hard;
+use crate::camera::Camera;
+use crate::error::RenderError;
+use crate::interpolate::interpolate;
+use crate::mesh::Mesh;
+use crate::raster::RasterSettings;
+use crate::rasterize::rasterize;
+use crate::scene::{CameraDesc, ImageDesc, Material, Method, Raster, Scene, SceneDesc};
+use crate::soft::{dibr, softras, DibrSettings, SoftSettings};
+use crate::transform::to_clip;
+
+/// Image size of the method cases.
+const SIZE: usize = 10;
+
+const OCTA: [[f64; 3]; 6] = [
+    [0.8, 0.1, 0.05],
+    [-0.75, -0.05, 0.1],
+    [0.05, 0.8, -0.1],
+    [-0.1, -0.8, 0.05],
+    [0.1, 0.05, 0.8],
+    [-0.05, 0.1, -0.85],
+];
+const OCTA_FACES: [[u32; 3]; 8] = [
+    [0, 2, 4],
+    [2, 1, 4],
+    [1, 3, 4],
+    [3, 0, 4],
+    [2, 0, 5],
+    [1, 2, 5],
+    [3, 1, 5],
+    [0, 3, 5],
+];
+
+/// A forward that fails with a message: turns a render error into a poisoned variable, which
+/// the gradcheck then reports as the case's error (case functions return a variable).
+struct Fail(String);
+
+impl<T: Real> Op<T> for Fail {
+    fn name(&self) -> &'static str {
+        "gradcheck case"
+    }
+    fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+        Err(AutodiffError::Op {
+            op: "gradcheck case",
+            detail: self.0.clone(),
+        })
+    }
+    fn backward(&self, _ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        Ok(vec![])
+    }
+}
+
+fn or_fail<'t, T: Real>(t: &'t Tape<T>, r: Result<Var<'t, T>, RenderError>) -> Var<'t, T> {
+    r.unwrap_or_else(|e| t.apply(Fail(e.to_string()), &[]))
+}
+
+fn camera() -> Camera {
+    Camera::perspective_look_at(
+        [0.4, 0.3, 3.0],
+        [0.0; 3],
+        [0.0, 1.0, 0.0],
+        40f64.to_radians(),
+        1.0,
+        1.0,
+        10.0,
+    )
+    .expect("a valid camera")
+}
+
+/// Clip positions `[6, 4]` of the octahedron moved by `delta` `[6, 3]`.
+fn octa_clip<'t, T: Real>(t: &'t Tape<T>, delta: Var<'t, T>) -> Var<'t, T> {
+    let base = ArrayD::from_shape_vec(
+        IxDyn(&[6, 3]),
+        OCTA.iter().flatten().map(|&x| T::from_f64c(x)).collect(),
+    )
+    .expect("6 x 3");
+    to_clip(t.constant(base) + delta, &camera().view_proj())
+}
+
+fn faces() -> Arc<Vec<[u32; 3]>> {
+    Arc::new(OCTA_FACES.to_vec())
+}
+
+fn hard_image<'t, T: Real>(
+    clip: Var<'t, T>,
+    colors: Var<'t, T>,
+) -> Result<Var<'t, T>, RenderError> {
+    let r = rasterize(clip, faces(), &RasterSettings::new(SIZE, SIZE))?;
+    let c = interpolate(colors, &r)?;
+    blend_hard(c, &r.fragments, &[T::zero(); 3])
+}
+
+fn method_image<'t, T: Real>(
+    t: &'t Tape<T>,
+    x: &[Var<'t, T>],
+    method: Method,
+) -> Result<Var<'t, T>, RenderError> {
+    let clip = octa_clip(t, x[0]);
+    let colors = x[1];
+    let approx = ApproxSettings::new(SIZE, SIZE);
+    match method {
+        Method::Hard => hard_image(clip, colors),
+        Method::SoftRas => {
+            let mut s = SoftSettings::new(SIZE, SIZE, 1.0, 10.0);
+            s.sigma = 1e-2;
+            s.gamma = 1e-2;
+            softras(clip, colors, faces(), &s)
+        }
+        Method::Dibr => {
+            let mut s = DibrSettings::new(SIZE, SIZE);
+            s.delta = 1e-2;
+            let alpha = dibr::dibr_alpha(clip, faces(), &s)?;
+            dibr::composite(hard_image(clip, colors)?, alpha)
+        }
+        Method::Deodr => deodr(clip, colors, faces(), &approx),
+        Method::TfMesh => tf_mesh(clip, colors, faces(), &approx),
+        Method::OpenDr => opendr(clip, colors, faces(), &approx),
+        Method::Nmr => nmr(clip, colors, faces(), &approx),
+    }
+}
+
+fn barycentrics_case<'t, T: Real>(t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
+    let clip = octa_clip(t, x[0]);
+    or_fail(
+        t,
+        rasterize(clip, faces(), &RasterSettings::new(SIZE, SIZE)).map(|r| r.bary),
+    )
+}
+
+fn interpolate_case<'t, T: Real>(t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
+    let clip = octa_clip(t, x[0]);
+    or_fail(
+        t,
+        rasterize(clip, faces(), &RasterSettings::new(SIZE, SIZE))
+            .and_then(|r| interpolate(x[1], &r)),
+    )
+}
+
+macro_rules! method_fn {
+    ($name:ident, $m:expr) => {
+        fn $name<'t, T: Real>(t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
+            or_fail(t, method_image(t, x, $m))
+        }
+    };
+}
+method_fn!(hard_case, Method::Hard);
+method_fn!(softras_case, Method::SoftRas);
+method_fn!(dibr_case, Method::Dibr);
+method_fn!(deodr_case, Method::Deodr);
+method_fn!(tf_mesh_case, Method::TfMesh);
+method_fn!(opendr_case, Method::OpenDr);
+method_fn!(nmr_case, Method::Nmr);
+
+/// The raster cases (`raster/...`) and the method cases on the octahedron (`method/...`).
+pub fn cases() -> Vec<Case> {
+    let delta = Gen::Uniform(-0.05, 0.05);
+    let color = Gen::Uniform(0.2, 1.0);
+    let pos_colors = |name: &'static str, f32f, f64f| {
+        Case::new(
+            name,
+            vec![vec![6, 3], vec![6, 3]],
+            vec![delta, color],
+            f32f,
+            f64f,
+        )
+        .in_category("method")
+    };
+    let colors_only = |name: &'static str, f32f, f64f| {
+        pos_colors(name, f32f, f64f).with_options(GradcheckOptions {
+            wrt: Some(vec![false, true]),
+            ..Default::default()
+        })
+    };
+    vec![
+        Case::new(
+            "raster/barycentrics",
+            vec![vec![6, 3]],
+            vec![delta],
+            barycentrics_case::<f32>,
+            barycentrics_case::<f64>,
+        )
+        .in_category("raster"),
+        Case::new(
+            "raster/interpolate",
+            vec![vec![6, 3], vec![6, 3]],
+            vec![delta, color],
+            interpolate_case::<f32>,
+            interpolate_case::<f64>,
+        )
+        .in_category("raster"),
+        pos_colors("method/hard", hard_case::<f32>, hard_case::<f64>),
+        pos_colors("method/deodr", deodr_case::<f32>, deodr_case::<f64>),
+        pos_colors("method/softras", softras_case::<f32>, softras_case::<f64>),
+        pos_colors("method/dibr", dibr_case::<f32>, dibr_case::<f64>),
+        colors_only(
+            "method/tf_mesh/colors",
+            tf_mesh_case::<f32>,
+            tf_mesh_case::<f64>,
+        ),
+        colors_only(
+            "method/opendr/colors",
+            opendr_case::<f32>,
+            opendr_case::<f64>,
+        ),
+        colors_only("method/nmr/colors", nmr_case::<f32>, nmr_case::<f64>),
+    ]
+}
+
+/// A small scene of `method`: an icosphere (80 faces) with vertex colours, 16 x 16, unlit.
+pub fn sphere_scene(method: Method) -> Result<Scene<f64>, RenderError> {
+    let m = Mesh::<f64>::icosphere(1, 0.8);
+    let colors = m
+        .positions
+        .iter()
+        .map(|p| std::array::from_fn(|k| 0.55 + 0.4 * p[k] / 0.8))
+        .collect();
+    let mesh = Mesh::new(m.positions, m.faces).with_colors(colors);
+    let desc = SceneDesc {
+        mesh: PathBuf::from("<icosphere>"),
+        texture: None,
+        camera: CameraDesc {
+            eye: [0.3, 0.2, 3.0],
+            at: [0.0; 3],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 45.0,
+            near: 1.0,
+            far: 10.0,
+        },
+        image: ImageDesc {
+            width: 16,
+            height: 16,
+            background: [0.0; 3],
+        },
+        lights: Vec::new(),
+        material: Material::default(),
+        raster: Raster::with_method(method),
+    };
+    let file = format!("<gradcheck sphere {}>", method.name());
+    desc.validate(&file)?;
+    let camera = desc.camera()?;
+    Ok(Scene {
+        source: file,
+        desc,
+        mesh_path: PathBuf::from("<icosphere>"),
+        texture_path: None,
+        mesh,
+        texture: None,
+        camera,
+    })
+}
+
+/// The reference check of an approximate method as a registry result: `max_abs_err` and
+/// `max_rel_err` hold `1 - cosine` and the relative L2 error against the reference.
+fn reference_check(name: &'static str, method: Method) -> CaseResult {
+    let run = || -> Result<CaseResult, RenderError> {
+        let scene = sphere_scene(method)?;
+        let mut o = SceneCheckOptions::new(SceneInput::Positions);
+        o.samples = 4;
+        o.items = 24;
+        let c = check_scene(&scene, None, &o)?;
+        let r = c.reference.as_ref().expect("positions have a reference");
+        Ok(CaseResult {
+            op: name,
+            category: "method",
+            shapes: vec![vec![scene.mesh.positions.len(), 3]],
+            max_abs_err: 1.0 - r.cosine,
+            max_rel_err: r.rel_l2,
+            f32_rel: 0.0,
+            passed: c.passed(),
+            error: None,
+        })
+    };
+    run().unwrap_or_else(|e| CaseResult::error(name, "method", &[], e))
+}
+
+/// Adds the raster and method cases and the reference checks of the approximate methods.
+pub fn register(registry: &mut Registry) {
+    for c in cases() {
+        registry.add(c);
+    }
+    registry.add_check("method/tf_mesh/reference", "method", || {
+        reference_check("method/tf_mesh/reference", Method::TfMesh)
+    });
+    registry.add_check("method/opendr/reference", "method", || {
+        reference_check("method/opendr/reference", Method::OpenDr)
+    });
+    registry.add_check("method/nmr/reference", "method", || {
+        reference_check("method/nmr/reference", Method::Nmr)
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_raster_and_method_case_passes() {
+        let mut reg = Registry::new();
+        register(&mut reg);
+        let results = reg.run(None);
+        assert_eq!(results.len(), 12);
+        for r in &results {
+            assert!(r.passed, "{r:?}");
+        }
+        for cat in ["raster", "method"] {
+            assert!(results.iter().any(|r| r.category == cat));
+        }
+    }
+
+    #[test]
+    fn a_failing_render_is_an_error_not_a_panic() {
+        let t = Tape::<f64>::new();
+        let v = or_fail(&t, Err(RenderError::Unsupported("nope".into())));
+        assert!(v.value().unwrap_err().to_string().contains("nope"));
+    }
+}
