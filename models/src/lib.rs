@@ -1,6 +1,7 @@
 //! Parametric models for Tapestry: a linear (3DMM-style) morphable model of shape and
 //! albedo ([`Morphable`]), its file layout ([`Morphable::load`], [`Morphable::save`]) and a
-//! shipped face model built on the MediaPipe canonical face mesh ([`face`]).
+//! shipped face model built on the MediaPipe canonical face mesh ([`face`]), and face detection
+//! with the 468 MediaPipe face-mesh landmarks in pure Rust ([`detect`]).
 //!
 //! ```
 //! use autodiff::{tensor, Tape};
@@ -15,6 +16,7 @@
 //! ```
 #![warn(missing_docs)]
 
+pub mod detect;
 pub mod error;
 pub mod face;
 pub mod fit;

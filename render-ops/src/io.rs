@@ -1,4 +1,5 @@
-//! Image and array files: PNG (8/16-bit in, 8-bit out) and `.npy` (float32/float64, C order).
+//! Image and array files: PNG (8/16-bit in, 8-bit out), JPEG (in) and `.npy` (float32/float64,
+//! C order).
 //!
 //! Images are `[H, W, C]` arrays, row 0 at the top, `C` = 1 (gray), 3 (RGB) or 4 (RGBA), values
 //! linear floats nominally in [0, 1]. PNG writing clamps to [0, 1] and rounds to 8 bits with no
@@ -39,10 +40,10 @@ pub enum IoError {
         /// Underlying error.
         source: io::Error,
     },
-    /// Not a decodable PNG (corrupt, truncated, other format).
-    #[error("{}: cannot decode PNG: {source}", .path.display())]
+    /// Not a decodable PNG or JPEG (corrupt, truncated, other format).
+    #[error("{}: cannot decode {}: {source}", .path.display(), format_name(.path))]
     Decode {
-        /// The file.
+        /// The file (`.jpg`/`.jpeg`: a JPEG, else a PNG).
         path: PathBuf,
         /// Decoder error.
         source: image::ImageError,
@@ -107,19 +108,33 @@ pub enum IoError {
         /// What went wrong.
         message: String,
     },
-    /// [`read_image`] got a file that is neither `.png` nor `.npy`.
-    #[error("{}: unknown image file type; expected a .png or .npy file", .path.display())]
+    /// [`read_image`] got a file that is neither `.png`, `.jpg`/`.jpeg` nor `.npy`.
+    #[error("{}: unknown image file type; expected a .png, .jpg or .npy file", .path.display())]
     Extension {
         /// The file.
         path: PathBuf,
     },
 }
 
+/// `JPEG` for a `.jpg`/`.jpeg` file name, else `PNG` (the format [`IoError::Decode`] names).
+fn format_name(path: &Path) -> &'static str {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase());
+    if matches!(ext.as_deref(), Some("jpg" | "jpeg")) {
+        "JPEG"
+    } else {
+        "PNG"
+    }
+}
+
 fn image_shape_ok(shape: &[usize]) -> bool {
     shape.len() == 3 && shape[0] > 0 && shape[1] > 0 && matches!(shape[2], 1 | 3 | 4)
 }
 
-/// Reads an 8- or 16-bit gray, RGB or RGBA PNG into `[H, W, C]` floats in [0, 1].
+/// Reads an 8- or 16-bit gray, RGB or RGBA PNG into `[H, W, C]` floats in [0, 1]; a JPEG
+/// (recognised from its first bytes; 8-bit gray or RGB, no EXIF rotation) is read the same way.
 pub fn read_png<T: Real>(path: impl AsRef<Path>) -> Result<Array3<T>, IoError> {
     let path = path.as_ref();
     let open_err = |source| IoError::Open {
@@ -128,8 +143,9 @@ pub fn read_png<T: Real>(path: impl AsRef<Path>) -> Result<Array3<T>, IoError> {
     };
     let reader = ImageReader::open(path).map_err(open_err)?;
     let mut reader = reader.with_guessed_format().map_err(open_err)?;
-    if reader.format().is_none() {
-        // Not recognised from the magic bytes: let the PNG decoder report what is wrong.
+    if reader.format() != Some(ImageFormat::Jpeg) {
+        // PNG, or not recognised from the magic bytes: let the PNG decoder report what is
+        // wrong.
         reader.set_format(ImageFormat::Png);
     }
     // The file is open and its header read: an I/O error while decoding (e.g. an unexpected
@@ -307,8 +323,9 @@ pub fn write_npy<T: Real, S: Data<Elem = T>, D: Dimension>(
     })
 }
 
-/// Reads an image `[H, W, C]` (C = 1, 3 or 4) from a `.png` ([`read_png`]) or a `.npy`
-/// ([`read_npy`], which must be 3-D of that form), by file extension (case-insensitive).
+/// Reads an image `[H, W, C]` (C = 1, 3 or 4) from a `.png` or `.jpg`/`.jpeg` ([`read_png`]) or
+/// a `.npy` ([`read_npy`], which must be 3-D of that form), by file extension
+/// (case-insensitive).
 pub fn read_image<T: Real>(path: impl AsRef<Path>) -> Result<Array3<T>, IoError> {
     let path = path.as_ref();
     let ext = path
@@ -316,7 +333,7 @@ pub fn read_image<T: Real>(path: impl AsRef<Path>) -> Result<Array3<T>, IoError>
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase());
     match ext.as_deref() {
-        Some("png") => read_png(path),
+        Some("png" | "jpg" | "jpeg") => read_png(path),
         Some("npy") => {
             let arr = read_npy::<T>(path)?;
             if !image_shape_ok(arr.shape()) {
@@ -522,5 +539,48 @@ mod tests {
         let q = tmp("img.png");
         write_png(&q, &img).unwrap();
         assert_eq!(read_image::<f64>(&q).unwrap().shape(), &[2, 3, 4]);
+    }
+
+    #[test]
+    fn read_image_reads_jpeg() {
+        // A smooth RGB image and a gray one at quality 100: back within a few grey levels.
+        let (w, h) = (24u32, 16u32);
+        let rgb: Vec<u8> = (0..h * w * 3)
+            .map(|i| (40 + (i / 3 % w) * 5 + (i / 3 / w) * 4 + (i % 3) * 20) as u8)
+            .collect();
+        for (name, data, color, c) in [
+            ("rgb.jpg", rgb.clone(), image::ExtendedColorType::Rgb8, 3),
+            (
+                "gray.JPEG",
+                rgb.iter().step_by(3).copied().collect(),
+                image::ExtendedColorType::L8,
+                1,
+            ),
+        ] {
+            let p = tmp(name);
+            let file = BufWriter::new(File::create(&p).unwrap());
+            image::codecs::jpeg::JpegEncoder::new_with_quality(file, 100)
+                .encode(&data, w, h, color)
+                .unwrap();
+            let back: Array3<f64> = read_image(&p).unwrap();
+            assert_eq!(back.shape(), &[h as usize, w as usize, c], "{name}");
+            for (a, &b) in back.iter().zip(&data) {
+                assert!((a * 255.0 - b as f64).abs() <= 4.0, "{name}: {a} vs {b}");
+            }
+        }
+        // A truncated JPEG is a decode error that says JPEG and names the file.
+        let p = tmp("rgb.jpg");
+        let bytes = std::fs::read(&p).unwrap();
+        let cut = tmp("cut.jpg");
+        std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
+        let e = read_image::<f64>(&cut).unwrap_err();
+        assert!(matches!(e, IoError::Decode { .. }), "{e:?}");
+        assert!(e.to_string().contains("cut.jpg: cannot decode JPEG"), "{e}");
+        // Not an image at all, named .jpg: the PNG decoder's error, as for any unknown bytes.
+        std::fs::write(&cut, b"plain text").unwrap();
+        assert!(matches!(
+            read_image::<f64>(&cut),
+            Err(IoError::Decode { .. })
+        ));
     }
 }

@@ -5,6 +5,7 @@ mod bench;
 mod fit_face;
 mod grad;
 mod gradcheck;
+mod landmarks;
 mod render;
 
 use std::path::PathBuf;
@@ -147,6 +148,25 @@ pub enum Command {
         #[arg(long, default_value_t = 256)]
         size: usize,
     },
+    /// Detect faces in a photo and their 468 MediaPipe face-mesh landmarks; prints the faces
+    /// and their scores, writes the landmark file (as `fit-face --landmarks` reads it) and an
+    /// overlay.
+    Landmarks {
+        /// The photo (PNG, JPEG, or .npy [H, W, C]).
+        photo: PathBuf,
+        /// Write the landmarks: 468 `x y` lines, pixels, pixel centres at +0.5.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write the photo with the boxes and the landmarks drawn as a PNG.
+        #[arg(long)]
+        overlay: Option<PathBuf>,
+        /// Which face --out and --overlay use: 0 is the largest.
+        #[arg(long, default_value_t = 0)]
+        face: usize,
+        /// Print the faces (score, presence, box, keypoints, landmarks x y z) as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Speed against error for every raster method (against a supersampled reference image
     /// and its finite-difference pose gradient), and scaling in faces, pixels and threads:
     /// a Markdown table, a JSON list of records, SVG charts.
@@ -244,6 +264,19 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
             seed,
             method,
             size,
+        }),
+        Command::Landmarks {
+            photo,
+            out,
+            overlay,
+            face,
+            json,
+        } => landmarks::run(&landmarks::Args {
+            photo,
+            out,
+            overlay,
+            face,
+            json,
         }),
         Command::Bench {
             quick,
