@@ -107,8 +107,8 @@ pub enum IoError {
         /// What went wrong.
         message: String,
     },
-    /// [`read_image`] got a file that is neither `.png` nor `.npy`.
-    #[error("{}: unknown image file type; expected a .png or .npy file", .path.display())]
+    /// [`read_image`] got a file that is not `.png`, `.jpg`/`.jpeg` or `.npy`.
+    #[error("{}: unknown image file type; expected a .png, .jpg or .npy file", .path.display())]
     Extension {
         /// The file.
         path: PathBuf,
@@ -119,7 +119,8 @@ fn image_shape_ok(shape: &[usize]) -> bool {
     shape.len() == 3 && shape[0] > 0 && shape[1] > 0 && matches!(shape[2], 1 | 3 | 4)
 }
 
-/// Reads an 8- or 16-bit gray, RGB or RGBA PNG into `[H, W, C]` floats in [0, 1].
+/// Reads an 8- or 16-bit gray, RGB or RGBA PNG (or a JPEG: the format is taken from the file's
+/// magic bytes) into `[H, W, C]` floats in [0, 1].
 pub fn read_png<T: Real>(path: impl AsRef<Path>) -> Result<Array3<T>, IoError> {
     let path = path.as_ref();
     let open_err = |source| IoError::Open {
@@ -307,8 +308,9 @@ pub fn write_npy<T: Real, S: Data<Elem = T>, D: Dimension>(
     })
 }
 
-/// Reads an image `[H, W, C]` (C = 1, 3 or 4) from a `.png` ([`read_png`]) or a `.npy`
-/// ([`read_npy`], which must be 3-D of that form), by file extension (case-insensitive).
+/// Reads an image `[H, W, C]` (C = 1, 3 or 4) from a `.png` or `.jpg`/`.jpeg` ([`read_png`],
+/// which decodes either) or a `.npy` ([`read_npy`], which must be 3-D of that form), by file
+/// extension (case-insensitive).
 pub fn read_image<T: Real>(path: impl AsRef<Path>) -> Result<Array3<T>, IoError> {
     let path = path.as_ref();
     let ext = path
@@ -316,7 +318,7 @@ pub fn read_image<T: Real>(path: impl AsRef<Path>) -> Result<Array3<T>, IoError>
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase());
     match ext.as_deref() {
-        Some("png") => read_png(path),
+        Some("png" | "jpg" | "jpeg") => read_png(path),
         Some("npy") => {
             let arr = read_npy::<T>(path)?;
             if !image_shape_ok(arr.shape()) {
