@@ -892,3 +892,57 @@ fn loss_curve_svg(result: &FitResult, landmark_iters: usize) -> String {
     );
     s
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn area_resize_keeps_means_and_matches_box_filters() {
+        let img = Array3::from_shape_fn((12, 10, 3), |(r, c, k)| {
+            ((r * 7 + c * 3 + k * 5) % 11) as f64 / 10.0
+        });
+        // An integer factor: the plain box mean.
+        let half = resize_area(&img, 6, 5);
+        for (r, c, k) in [(0, 0, 0), (3, 2, 1), (5, 4, 2)] {
+            let want = (0..2)
+                .flat_map(|i| (0..2).map(move |j| (i, j)))
+                .map(|(i, j)| img[[2 * r + i, 2 * c + j, k]])
+                .sum::<f64>()
+                / 4.0;
+            assert!((half[[r, c, k]] - want).abs() < 1e-12);
+        }
+        // Any factor: weights sum to 1 (constants stay) and the image mean is kept.
+        let odd = resize_area(&img, 7, 3);
+        let flat = resize_area(&Array3::from_elem((12, 10, 1), 0.3), 5, 7);
+        assert!(flat.iter().all(|v| (v - 0.3).abs() < 1e-12));
+        for k in 0..3 {
+            let m_in = img.slice(s![.., .., k]).mean().unwrap();
+            let m_out = odd.slice(s![.., .., k]).mean().unwrap();
+            assert!((m_in - m_out).abs() < 1e-12, "{m_in} vs {m_out}");
+        }
+    }
+
+    #[test]
+    fn baked_albedo_interpolates_the_corners() {
+        let uvs = Array2::from_shape_vec((3, 2), vec![0.0, 0.0, 1.0, 0.0, 0.0, 1.0]).unwrap();
+        let albedo =
+            Array2::from_shape_vec((3, 3), vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+                .unwrap();
+        let n = 16;
+        let tex = bake_albedo(&uvs, &[[0, 1, 2]], &albedo, &[None], n);
+        // Texel (row 12, col 2): centre (2.5, 12.5) = uv (2.5 / 16, 1 - 12.5 / 16).
+        let (u, v) = (2.5 / 16.0, 1.0 - 12.5 / 16.0);
+        let want = [1.0 - u - v, u, v];
+        for k in 0..3 {
+            assert!((tex[[12, 2, k]] - want[k]).abs() < 1e-12);
+        }
+        // Beyond the diagonal: four dilation rounds fill pixels next to the triangle, the far
+        // corner stays empty.
+        assert!(tex.slice(s![0, 15, ..]).iter().all(|&x| x == 0.0));
+        assert!(tex.slice(s![0, 0, ..]).iter().any(|&x| x > 0.0));
+        // A region colour replaces the interpolation.
+        let tex = bake_albedo(&uvs, &[[0, 1, 2]], &albedo, &[Some([0.1, 0.2, 0.3])], n);
+        assert_eq!(tex[[12, 2, 1]], 0.2);
+    }
+}
