@@ -71,10 +71,12 @@ fn err(e: impl std::fmt::Display) -> CliError {
     CliError::Message(e.to_string())
 }
 
-/// The target's landmarks, in the photo's pixels: from `--landmarks` (which also overrides
-/// detection once it is built in, `--face` then must be 0).
+/// The target's landmarks, in the photo's pixels: the one place they come from. Today
+/// `--landmarks` (`--face` must then be 0); once detection is built in, `--landmarks` stays
+/// an override and without it `photo` (`[H, W, 3]`, the input's pixels) goes to the detector
+/// and `--face` picks one of its faces, largest first.
 pub fn target_landmarks(args: &Args, photo: &Array3<f64>) -> Result<Landmarks2D, CliError> {
-    let _ = photo; // the detector's input once detection is wired in
+    let (h, w, _) = photo.dim();
     match &args.landmarks {
         Some(path) => {
             if args.face != 0 {
@@ -91,8 +93,8 @@ pub fn target_landmarks(args: &Args, photo: &Array3<f64>) -> Result<Landmarks2D,
             })
         }
         None => Err(CliError::Message(format!(
-            "--target {}: no --landmarks given and this build has no face detection; give \
-             --landmarks (one `x y` line per landmark)",
+            "--target {} ({w}x{h}): no --landmarks given and this build has no face \
+             detection; give --landmarks (one `x y` line per landmark)",
             args.target
                 .as_deref()
                 .map(|p| p.display().to_string())
