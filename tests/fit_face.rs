@@ -58,8 +58,8 @@ fn run_fit(size: usize, seed: u64, iters: usize, method: Method) -> Outcome {
     o.render.method = method;
     let r = fit::fit(&m, &s.target, None, &o, &mut |_| {}).unwrap();
     let renderer = fit::FaceRenderer::new(&m, o.render.clone()).unwrap();
-    let (img, px) = renderer.render(&r.params).unwrap();
-    let lm = px.select(ndarray::Axis(0), &s.target.vertices);
+    let (img, _) = renderer.render(&r.params).unwrap();
+    let lm = renderer.landmarks_px(&r.params, &s.target.points).unwrap();
     let truth = s.truth.shape(&m).unwrap();
     let shape = r.params.shape(&m).unwrap();
     Outcome {
@@ -175,16 +175,23 @@ fn landmark_file_errors_are_typed() {
     assert_eq!(a.shape(), &[2, 2]);
     assert_eq!(a[[1, 0]], 3.0);
     // Wrong count for the model.
-    let e = fit::landmark_vertices(&m, a.nrows(), &p).unwrap_err();
+    let e = fit::correspondence(&m, a.nrows(), &p).unwrap_err();
     assert!(
         matches!(e, LandmarkFileError::Count { found: 2, .. }),
         "{e}"
     );
-    assert!(e.to_string().contains("468"), "{e}");
-    assert_eq!(
-        fit::landmark_vertices(&m, 468, &p).unwrap(),
-        (0..468).collect::<Vec<_>>()
+    assert!(
+        e.to_string().contains("468") && e.to_string().contains("68"),
+        "{e}"
     );
+    let c = fit::correspondence(&m, 468, &p).unwrap();
+    assert_eq!(
+        c.points,
+        (0..468)
+            .map(models::LandmarkPoint::vertex)
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(c.rows, (0..468).map(|i| [i, i]).collect::<Vec<_>>());
     // A line with three fields, a non-number, a non-finite value.
     for (name, text, line) in [
         ("three.txt", "1 2\n1 2 3\n", 2),

@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::error::{ModelError, Result};
-use crate::morphable::{Labels, Morphable, MorphableParts, Region};
+use crate::morphable::{Labels, LandmarkScheme, Morphable, MorphableParts, Region, SurfacePoint};
 
 /// The `format` string of `model.json`.
 pub const FORMAT: &str = "tapestry-morphable";
@@ -171,6 +171,10 @@ struct ModelJson {
     sigma_albedo: Option<Floats>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     landmarks: Option<Indices>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    landmark_points: Option<Vec<[f64; 4]>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    landmark_scheme: Option<String>,
     #[serde(default)]
     landmark_groups: BTreeMap<String, Vec<i64>>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -610,7 +614,39 @@ pub(crate) fn load_from<T: Real>(src: &Source<'_>) -> Result<Morphable<T>> {
     };
 
     labels.landmarks = format!("{json_label}: landmarks");
+    labels.landmark_points = format!("{json_label}: landmark_points");
+    let landmark_scheme = match &j.landmark_scheme {
+        None => None,
+        Some(name) => Some(LandmarkScheme::from_name(name).ok_or_else(|| {
+            json_err(format!(
+                "landmark_scheme {name:?} unknown (one of {})",
+                LandmarkScheme::ALL.map(|s| s.name()).join(", ")
+            ))
+        })?),
+    };
+    let mut landmark_points = Vec::new();
+    if let Some(rows) = &j.landmark_points {
+        if j.landmarks.is_some() {
+            return Err(json_err(
+                "give either landmarks (vertices) or landmark_points (points on triangles), not both"
+                    .into(),
+            ));
+        }
+        for (i, r) in rows.iter().enumerate() {
+            if !(r[0].is_finite() && r[0] >= 0.0 && r[0].fract() == 0.0) {
+                return Err(ModelError::Invalid {
+                    file: labels.landmark_points.clone(),
+                    detail: format!("point {i}: triangle index {} is not an index", r[0]),
+                });
+            }
+            landmark_points.push(SurfacePoint {
+                face: r[0] as usize,
+                weights: [r[1], r[2], r[3]],
+            });
+        }
+    }
     let landmarks = match &j.landmarks {
+        None if j.landmark_points.is_some() => vec![],
         None => (0..v).collect(),
         Some(Indices::Inline(l)) => indices(&labels.landmarks, "landmark vertex index", l, v)?,
         Some(Indices::File(name)) => {
@@ -650,6 +686,8 @@ pub(crate) fn load_from<T: Real>(src: &Source<'_>) -> Result<Morphable<T>> {
         faces,
         uvs,
         landmarks,
+        landmark_points,
+        landmark_scheme,
         landmark_groups: groups,
         regions,
         face_regions,
@@ -731,6 +769,8 @@ const KEY_ORDER: &[&str] = &[
     "sigma_exp",
     "sigma_albedo",
     "landmarks",
+    "landmark_scheme",
+    "landmark_points",
     "landmark_groups",
     "regions",
     "id_names",
@@ -852,8 +892,15 @@ pub(crate) fn save_to<T: Real>(m: &Morphable<T>, dir: &Path) -> Result<()> {
         sigma_id: sig(m.sigma_id()),
         sigma_exp: has_exp.then(|| sig(m.sigma_exp())),
         sigma_albedo: has_alb.then(|| sig(m.sigma_albedo())),
-        landmarks: (m.landmarks() != all.as_slice())
+        landmarks: (m.surface_landmarks().is_empty() && m.landmarks() != all.as_slice())
             .then(|| Indices::Inline(m.landmarks().iter().map(|&x| x as i64).collect())),
+        landmark_points: (!m.surface_landmarks().is_empty()).then(|| {
+            m.surface_landmarks()
+                .iter()
+                .map(|q| [q.face as f64, q.weights[0], q.weights[1], q.weights[2]])
+                .collect()
+        }),
+        landmark_scheme: m.landmark_scheme().map(|s| s.name().to_string()),
         landmark_groups: m
             .landmark_groups()
             .iter()

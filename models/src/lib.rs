@@ -24,4 +24,6 @@ pub mod io;
 pub mod morphable;
 
 pub use error::{ModelError, Result};
-pub use morphable::{Morphable, MorphableParts, Region, RegionSplit};
+pub use morphable::{
+    LandmarkPoint, LandmarkScheme, Morphable, MorphableParts, Region, RegionSplit, SurfacePoint,
+};

@@ -47,6 +47,94 @@ impl Region {
     }
 }
 
+/// How a model's landmarks are numbered (`landmark_scheme` in `model.json`): which 2D
+/// landmark detector's points they correspond to, one to one and in order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum LandmarkScheme {
+    /// The 468 points of MediaPipe's face mesh, in MediaPipe's order.
+    MediaPipe468,
+    /// The 68 points of the iBUG 300-W / Multi-PIE markup (dlib's 68), in that order.
+    Ibug68,
+}
+
+impl LandmarkScheme {
+    /// Every scheme.
+    pub const ALL: [LandmarkScheme; 2] = [LandmarkScheme::MediaPipe468, LandmarkScheme::Ibug68];
+
+    /// The `model.json` name: `mediapipe468` or `ibug68`.
+    pub fn name(self) -> &'static str {
+        match self {
+            LandmarkScheme::MediaPipe468 => "mediapipe468",
+            LandmarkScheme::Ibug68 => "ibug68",
+        }
+    }
+
+    /// The scheme called `name` (see [`LandmarkScheme::name`]).
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|s| s.name() == name)
+    }
+
+    /// Number of landmarks of the scheme.
+    pub fn count(self) -> usize {
+        match self {
+            LandmarkScheme::MediaPipe468 => 468,
+            LandmarkScheme::Ibug68 => 68,
+        }
+    }
+}
+
+/// A point on the model's surface: barycentric `weights` of the corners of triangle `face`
+/// (`model.json`'s `landmark_points` rows `[face, w0, w1, w2]`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfacePoint {
+    /// Triangle index.
+    pub face: usize,
+    /// Weights of the triangle's three corners, in the triangle's vertex order (sum 1).
+    pub weights: [f64; 3],
+}
+
+/// A landmark as a weighted sum of (up to) three model vertices: a vertex (weights `[1, 0,
+/// 0]`), a point on a triangle, or the mean of two vertices. Its position is the same
+/// weighted sum of the (posed) vertex positions.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LandmarkPoint {
+    /// The vertices.
+    pub vertices: [usize; 3],
+    /// Their weights.
+    pub weights: [f64; 3],
+}
+
+impl LandmarkPoint {
+    /// The landmark at vertex `v`.
+    pub fn vertex(v: usize) -> Self {
+        LandmarkPoint {
+            vertices: [v; 3],
+            weights: [1.0, 0.0, 0.0],
+        }
+    }
+
+    /// The vertex, if this landmark is exactly one vertex.
+    pub fn as_vertex(&self) -> Option<usize> {
+        let w = self.weights;
+        (w == [1.0, 0.0, 0.0]).then_some(self.vertices[0])
+    }
+
+    /// The weighted sum of the rows `vertices` of `positions` `[V, C]`.
+    pub fn eval<T: Real>(&self, positions: ArrayView2<'_, T>) -> Vec<T> {
+        let c = positions.ncols();
+        (0..c)
+            .map(|k| {
+                self.vertices
+                    .iter()
+                    .zip(self.weights)
+                    .fold(T::zero(), |acc, (&v, w)| {
+                        acc + positions[[v, k]] * T::from_f64c(w)
+                    })
+            })
+            .collect()
+    }
+}
+
 /// The plain arrays a [`Morphable`] is built from (see [`Morphable::from_parts`]).
 #[derive(Clone, Debug)]
 pub struct MorphableParts<T: Real> {
@@ -77,8 +165,13 @@ pub struct MorphableParts<T: Real> {
     pub faces: Vec<[u32; 3]>,
     /// Texture coordinates `[V, 2]`, if any.
     pub uvs: Option<Array2<T>>,
-    /// Landmark vertex indices (the shipped model: every vertex, in order).
+    /// Landmark vertex indices (the shipped model: every vertex, in order); empty when the
+    /// landmarks are `landmark_points`.
     pub landmarks: Vec<usize>,
+    /// Landmarks as points on triangles (empty: the landmarks are `landmarks`).
+    pub landmark_points: Vec<SurfacePoint>,
+    /// Which detector's numbering the landmarks follow, if known.
+    pub landmark_scheme: Option<LandmarkScheme>,
     /// Named groups of vertex indices (contours).
     pub landmark_groups: BTreeMap<String, Vec<usize>>,
     /// Triangle regions; region 0 is the default.
@@ -107,6 +200,7 @@ pub(crate) struct Labels {
     pub faces: String,
     pub uvs: String,
     pub landmarks: String,
+    pub landmark_points: String,
     pub groups: String,
     pub face_regions: String,
     pub names: String,
@@ -126,6 +220,7 @@ impl Default for Labels {
             faces: "faces".into(),
             uvs: "uvs".into(),
             landmarks: "landmarks".into(),
+            landmark_points: "landmark_points".into(),
             groups: "landmark_groups".into(),
             face_regions: "face_regions".into(),
             names: "component names".into(),
@@ -157,6 +252,8 @@ pub struct Morphable<T: Real> {
     faces: Arc<Vec<[u32; 3]>>,
     uvs: Option<Arc<Array2<T>>>,
     landmarks: Arc<Vec<usize>>,
+    landmark_points: Arc<Vec<SurfacePoint>>,
+    landmark_scheme: Option<LandmarkScheme>,
     landmark_groups: Arc<BTreeMap<String, Vec<usize>>>,
     regions: Arc<Vec<Region>>,
     face_regions: Arc<Vec<u16>>,
@@ -347,6 +444,45 @@ impl<T: Real> Morphable<T> {
         for (i, &ix) in p.landmarks.iter().enumerate() {
             check_index(&l.landmarks, "landmark vertex index", i, ix, v)?;
         }
+        if !p.landmark_points.is_empty() && !p.landmarks.is_empty() {
+            return Err(ModelError::Invalid {
+                file: l.landmark_points.clone(),
+                detail: "give the landmarks either as vertices or as points on triangles, not both"
+                    .into(),
+            });
+        }
+        for (i, q) in p.landmark_points.iter().enumerate() {
+            check_index(
+                &l.landmark_points,
+                "triangle index",
+                i,
+                q.face,
+                p.faces.len(),
+            )?;
+            let sum: f64 = q.weights.iter().sum();
+            if q.weights.iter().any(|w| !w.is_finite()) || (sum - 1.0).abs() > 1e-4 {
+                return Err(ModelError::Invalid {
+                    file: l.landmark_points.clone(),
+                    detail: format!(
+                        "point {i}: barycentric weights {:?} must be finite and sum to 1",
+                        q.weights
+                    ),
+                });
+            }
+        }
+        if let Some(scheme) = p.landmark_scheme {
+            let n = p.landmarks.len().max(p.landmark_points.len());
+            if n != scheme.count() {
+                return Err(ModelError::Invalid {
+                    file: l.landmarks.clone(),
+                    detail: format!(
+                        "landmark_scheme {:?} has {} landmarks, the model gives {n}",
+                        scheme.name(),
+                        scheme.count()
+                    ),
+                });
+            }
+        }
         for (name, g) in &p.landmark_groups {
             for (i, &ix) in g.iter().enumerate() {
                 check_index(
@@ -420,6 +556,8 @@ impl<T: Real> Morphable<T> {
             faces: Arc::new(p.faces),
             uvs: p.uvs.map(Arc::new),
             landmarks: Arc::new(p.landmarks),
+            landmark_points: Arc::new(p.landmark_points),
+            landmark_scheme: p.landmark_scheme,
             landmark_groups: Arc::new(p.landmark_groups),
             regions: Arc::new(regions),
             face_regions: Arc::new(face_regions),
@@ -446,6 +584,8 @@ impl<T: Real> Morphable<T> {
             faces: (*self.faces).clone(),
             uvs: self.uvs.as_deref().cloned(),
             landmarks: (*self.landmarks).clone(),
+            landmark_points: (*self.landmark_points).clone(),
+            landmark_scheme: self.landmark_scheme,
             landmark_groups: (*self.landmark_groups).clone(),
             regions: (*self.regions).clone(),
             face_regions: (*self.face_regions).clone(),
@@ -475,6 +615,8 @@ impl<T: Real> Morphable<T> {
             faces: p.faces,
             uvs: p.uvs.as_ref().map(c2),
             landmarks: p.landmarks,
+            landmark_points: p.landmark_points,
+            landmark_scheme: p.landmark_scheme,
             landmark_groups: p.landmark_groups,
             regions: p.regions,
             face_regions: p.face_regions,
@@ -594,9 +736,40 @@ impl<T: Real> Morphable<T> {
     pub fn uvs(&self) -> Option<&Array2<T>> {
         self.uvs.as_deref()
     }
-    /// Landmark vertex indices.
+    /// Landmark vertex indices (empty when the landmarks are points on triangles, see
+    /// [`Morphable::surface_landmarks`]).
     pub fn landmarks(&self) -> &[usize] {
         &self.landmarks
+    }
+    /// Landmarks given as points on triangles (empty when they are vertices).
+    pub fn surface_landmarks(&self) -> &[SurfacePoint] {
+        &self.landmark_points
+    }
+    /// Which detector's numbering the landmarks follow, if the model says.
+    pub fn landmark_scheme(&self) -> Option<LandmarkScheme> {
+        self.landmark_scheme
+    }
+    /// Number of landmarks (vertices or surface points).
+    pub fn n_landmarks(&self) -> usize {
+        self.landmarks.len().max(self.landmark_points.len())
+    }
+    /// Every landmark as a [`LandmarkPoint`] (vertex landmarks, or the corners and weights of
+    /// the surface points), in landmark order.
+    pub fn landmark_points(&self) -> Vec<LandmarkPoint> {
+        if self.landmark_points.is_empty() {
+            self.landmarks
+                .iter()
+                .map(|&v| LandmarkPoint::vertex(v))
+                .collect()
+        } else {
+            self.landmark_points
+                .iter()
+                .map(|q| LandmarkPoint {
+                    vertices: self.faces[q.face].map(|x| x as usize),
+                    weights: q.weights,
+                })
+                .collect()
+        }
     }
     /// All named landmark groups.
     pub fn landmark_groups(&self) -> &BTreeMap<String, Vec<usize>> {
@@ -727,9 +900,14 @@ impl<T: Real> Morphable<T> {
         self.prior(tape, gamma, &self.inv_sigma_albedo)
     }
 
-    /// Landmark positions `[L, 3]` picked from a `[V, 3]` shape.
+    /// Landmark positions `[L, 3]` of a `[V, 3]` shape (vertices picked, or surface points
+    /// interpolated: [`landmark_combination`]).
     pub fn landmark_positions<'t>(&self, shape: Var<'t, T>) -> Var<'t, T> {
-        shape.index_select(0, &self.landmarks)
+        if self.landmark_points.is_empty() {
+            shape.index_select(0, &self.landmarks)
+        } else {
+            landmark_combination(shape, &self.landmark_points())
+        }
     }
 
     /// Positions `[n, 3]` of the vertices of a named group, if it exists.
@@ -861,6 +1039,37 @@ impl<T: Real> Morphable<T> {
     }
 }
 
+/// Positions `[L, C]` of landmark points from per-vertex positions `[V, C]` on the tape:
+/// `sum_k w_k x[v_k]` (three gathers, each times a constant weight column). When every point
+/// is a vertex it is one gather, the same values bit for bit.
+pub fn landmark_combination<'t, T: Real>(
+    positions: Var<'t, T>,
+    points: &[LandmarkPoint],
+) -> Var<'t, T> {
+    if let Some(v) = points
+        .iter()
+        .map(|p| p.as_vertex())
+        .collect::<Option<Vec<usize>>>()
+    {
+        return positions.index_select(0, &v);
+    }
+    let tape = positions.tape();
+    let c = positions.shape().get(1).copied().unwrap_or(1);
+    let mut sum: Option<Var<'t, T>> = None;
+    for k in 0..3 {
+        let idx: Vec<usize> = points.iter().map(|p| p.vertices[k]).collect();
+        let w = ArrayD::from_shape_fn(IxDyn(&[points.len(), c]), |i| {
+            T::from_f64c(points[i[0]].weights[k])
+        });
+        let term = positions.index_select(0, &idx) * tape.constant(w);
+        sum = Some(match sum {
+            Some(s) => s + term,
+            None => term,
+        });
+    }
+    sum.expect("three terms")
+}
+
 /// A copy of the model's topology in which regions with their own albedo (mouth interior,
 /// eye openings) have their own vertices: `vertex_map[i]` is the model vertex that render
 /// vertex `i` copies (the first `V` are the model's vertices, in order), `faces` index render
@@ -904,5 +1113,56 @@ impl<T: Real> RegionSplit<T> {
             }
         }
         a
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use autodiff::gradcheck::{gradcheck, GradcheckOptions};
+    use autodiff::rng::Rng;
+
+    #[test]
+    fn landmark_combination_is_the_weighted_sum_and_gradchecks() {
+        let mut rng = Rng::new(7);
+        let x: Tensor<f64> = rng.uniform_tensor(&[6, 3], -1.0, 1.0);
+        let points = vec![
+            LandmarkPoint {
+                vertices: [0, 2, 5],
+                weights: [0.2, 0.3, 0.5],
+            },
+            LandmarkPoint::vertex(4),
+            LandmarkPoint {
+                vertices: [1, 3, 1],
+                weights: [0.5, 0.5, 0.0],
+            },
+        ];
+        let tape = Tape::new();
+        let got = landmark_combination(tape.constant(x.clone()), &points)
+            .value()
+            .unwrap();
+        let x2 = x.view().into_dimensionality::<Ix2>().unwrap();
+        for (i, p) in points.iter().enumerate() {
+            let want = p.eval(x2);
+            for k in 0..3 {
+                assert!((got[[i, k]] - want[k]).abs() < 1e-15);
+            }
+        }
+        // Vertices only: one gather, bit for bit.
+        let v = [LandmarkPoint::vertex(3), LandmarkPoint::vertex(0)];
+        let g = landmark_combination(tape.constant(x.clone()), &v)
+            .value()
+            .unwrap();
+        assert_eq!(
+            g.index_axis(ndarray::Axis(0), 0),
+            x.index_axis(ndarray::Axis(0), 3)
+        );
+        let rep = gradcheck(
+            |_t: &Tape<f64>, v| landmark_combination(v[0], &points).square().sum(),
+            &[x],
+            &GradcheckOptions::default(),
+        )
+        .unwrap();
+        assert!(rep.passed(), "{rep}");
     }
 }

@@ -59,6 +59,8 @@ fn tiny() -> MorphableParts<f64> {
             (i + c) as f64 / 10.0
         })),
         landmarks: vec![4, 0, 2],
+        landmark_points: vec![],
+        landmark_scheme: None,
         landmark_groups: [("base".to_string(), vec![0, 1, 2, 3])]
             .into_iter()
             .collect(),
@@ -622,4 +624,103 @@ fn from_parts_checks_in_memory_models_too() {
     assert_eq!(t.id_names(), &["a", "b"]);
     let c = m.cast::<f32>().cast::<f64>();
     assert!((c.id_basis()[[3, 1]] - m.id_basis()[[3, 1]]).abs() < 1e-6);
+}
+
+#[test]
+fn landmark_points_and_scheme_round_trip_and_are_checked() {
+    use models::{LandmarkPoint, LandmarkScheme, SurfacePoint};
+    // Surface landmarks: a point inside triangle 1 and a corner of triangle 0.
+    let mut p = tiny();
+    p.landmarks = vec![];
+    p.landmark_points = vec![
+        SurfacePoint {
+            face: 1,
+            weights: [0.25, 0.5, 0.25],
+        },
+        SurfacePoint {
+            face: 0,
+            weights: [1.0, 0.0, 0.0],
+        },
+    ];
+    let m = Morphable::from_parts(p.clone()).unwrap();
+    assert_eq!(m.n_landmarks(), 2);
+    assert_eq!(
+        m.landmark_points(),
+        vec![
+            LandmarkPoint {
+                vertices: [1, 2, 4],
+                weights: [0.25, 0.5, 0.25],
+            },
+            LandmarkPoint {
+                vertices: [0, 1, 4],
+                weights: [1.0, 0.0, 0.0],
+            },
+        ]
+    );
+    let d = scratch("lmpoints");
+    m.save(&d).unwrap();
+    let text = std::fs::read_to_string(d.join("model.json")).unwrap();
+    assert!(text.contains("\"landmark_points\"") && !text.contains("\"landmarks\""));
+    let back = Morphable::<f64>::load(&d).unwrap();
+    assert_eq!(back.surface_landmarks(), m.surface_landmarks());
+    assert!(back.landmarks().is_empty());
+    // On the tape: the weighted sum of the corners.
+    let tape = autodiff::Tape::<f64>::new();
+    let shape = tape.constant(m.mean_shape().into_dyn());
+    let got = back.landmark_positions(shape).value().unwrap();
+    let mean = m.mean_shape();
+    for (i, q) in m.landmark_points().iter().enumerate() {
+        let want = q.eval(mean.view());
+        for k in 0..3 {
+            assert!((got[[i, k]] - want[k]).abs() < 1e-12);
+        }
+    }
+
+    // The scheme round-trips and must match the landmark count.
+    let mut q = tiny();
+    q.landmark_scheme = Some(LandmarkScheme::Ibug68);
+    let e = Morphable::from_parts(q).unwrap_err();
+    assert!(e.to_string().contains("ibug68"), "{e}");
+    let d = saved("scheme");
+    edit_json(&d, |j| j["landmark_scheme"] = "dlib5".into());
+    let e = load_err(&d);
+    assert!(matches!(e, ModelError::Json { .. }), "{e}");
+    assert!(e.to_string().contains("dlib5") && e.to_string().contains("mediapipe468"));
+    // The shipped model is MediaPipe-numbered, in memory and on disk.
+    assert_eq!(
+        models::face::load_default_face::<f64>()
+            .unwrap()
+            .landmark_scheme(),
+        Some(LandmarkScheme::MediaPipe468)
+    );
+    assert_eq!(
+        models::face::default_face::<f64>().landmark_scheme(),
+        Some(LandmarkScheme::MediaPipe468)
+    );
+
+    // Bad rows: both keys, a triangle out of range, a fractional index, weights not summing to 1.
+    let d = saved("both");
+    edit_json(&d, |j| {
+        j["landmark_points"] = serde_json::json!([[0, 1.0, 0.0, 0.0]])
+    });
+    let e = load_err(&d);
+    assert!(e.to_string().contains("not both"), "{e}");
+    for (row, needle) in [
+        (serde_json::json!([[6, 1.0, 0.0, 0.0]]), "triangle index 6"),
+        (serde_json::json!([[1.5, 1.0, 0.0, 0.0]]), "1.5"),
+        (serde_json::json!([[1, 0.5, 0.0, 0.0]]), "sum to 1"),
+    ] {
+        let d = saved("badrow");
+        edit_json(&d, |j| {
+            j.as_object_mut().unwrap().remove("landmarks");
+            j["landmark_points"] = row.clone();
+        });
+        let e = load_err(&d);
+        let msg = e.to_string();
+        assert!(
+            msg.contains(needle) && msg.contains("landmark_points"),
+            "{msg}"
+        );
+        assert_eq!(msg.lines().count(), 1, "{msg}");
+    }
 }

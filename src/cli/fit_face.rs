@@ -1,6 +1,9 @@
-//! `tapestry fit-face`: fits the shipped face model to a synthetic target (default) or to a
-//! photo with 2D landmarks, and writes `params.json`, `fit.png`, `overlay.png`,
-//! `loss_curve.svg` and `report.json` (docs/CONVENTIONS.md).
+//! `tapestry fit-face`: fits a morphable model (the shipped face model, or any model folder
+//! given with `--model`) to a synthetic target (default) or to a photo (PNG, JPEG or `.npy`,
+//! any size) with 2D landmarks, and writes the fitted mesh (`fit.obj`, `fit.mtl`,
+//! `albedo.png`), the landmarks (`landmarks.txt`, `detected_landmarks.txt`), the images
+//! (`fit.png`, `overlay.png`, `compare.png`), `params.json`, `loss_curve.svg` and
+//! `report.json` (docs/CONVENTIONS.md). Nothing is written unless the fit succeeded.
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -8,10 +11,11 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use models::fit::{
-    self, FaceParams, FaceRenderer, FitOptions, FitResult, FitTarget, StepRecord, SynthOptions,
+    self, Correspondence, FaceParams, FaceRenderer, FitOptions, FitResult, FitTarget,
+    RenderOptions, StepRecord, SynthOptions,
 };
 use models::Morphable;
-use ndarray::{Array2, Array3};
+use ndarray::{s, Array2, Array3};
 use render_ops::io::{read_image, write_png};
 use render_ops::scene::Method;
 use serde_json::json;
@@ -23,8 +27,12 @@ use super::CliError;
 pub struct Args {
     /// Target photo; `None`: a synthetic target.
     pub target: Option<PathBuf>,
-    /// Landmark file of the photo.
+    /// Landmark file of the photo (overrides detection).
     pub landmarks: Option<PathBuf>,
+    /// Model folder; `None`: the shipped face model.
+    pub model: Option<PathBuf>,
+    /// Which face of the photo, largest first (detection); 0 with `--landmarks`.
+    pub face: usize,
     /// Output folder.
     pub out: PathBuf,
     /// Iterations in all (half landmarks only, half all terms).
@@ -33,9 +41,19 @@ pub struct Args {
     pub seed: u64,
     /// Raster method name.
     pub method: String,
-    /// Image size of the synthetic target; photos larger than this are box-downscaled by an
-    /// integer factor to at most this size.
+    /// Image size of the synthetic target; photos larger than this are resized (area
+    /// filter, aspect kept) so that their longer side is this.
     pub size: usize,
+}
+
+/// 2D landmarks of the target photo, in the photo's own pixels (x right, y down, origin at
+/// the top-left corner, pixel centres at +0.5).
+#[derive(Clone, Debug)]
+pub struct Landmarks2D {
+    /// Positions `[N, 2]`.
+    pub points: Array2<f64>,
+    /// Where they come from (the landmark file), named in errors.
+    pub source: PathBuf,
 }
 
 fn parse_method(name: &str) -> Result<Method, CliError> {
@@ -53,36 +71,129 @@ fn err(e: impl std::fmt::Display) -> CliError {
     CliError::Message(e.to_string())
 }
 
-/// The photo as linear RGB `[H, W, 3]` (gray replicated, alpha dropped), box-downscaled by an
-/// integer factor so that it fits in `size`; the factor is returned.
-fn load_photo(path: &Path, size: usize) -> Result<(Array3<f64>, usize), CliError> {
+/// The target's landmarks, in the photo's pixels: the one place they come from. Today
+/// `--landmarks` (`--face` must then be 0); once detection is built in, `--landmarks` stays
+/// an override and without it `photo` (`[H, W, 3]`, the input's pixels) goes to the detector
+/// and `--face` picks one of its faces, largest first.
+pub fn target_landmarks(args: &Args, photo: &Array3<f64>) -> Result<Landmarks2D, CliError> {
+    let (h, w, _) = photo.dim();
+    match &args.landmarks {
+        Some(path) => {
+            if args.face != 0 {
+                return Err(CliError::Message(format!(
+                    "--face {}: out of range: --landmarks {} holds one face (use --face 0)",
+                    args.face,
+                    path.display()
+                )));
+            }
+            let points = fit::read_landmarks(path).map_err(err)?;
+            Ok(Landmarks2D {
+                points,
+                source: path.clone(),
+            })
+        }
+        None => Err(CliError::Message(format!(
+            "--target {} ({w}x{h}): no --landmarks given and this build has no face \
+             detection; give --landmarks (one `x y` line per landmark)",
+            args.target
+                .as_deref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_default()
+        ))),
+    }
+}
+
+/// A photo as fitted: the input `[H, W, 3]` and the image the fit sees (resized to fit
+/// `size`), with the scale per axis from input to fit pixels.
+struct Photo {
+    input: Array3<f64>,
+    fit: Array3<f64>,
+    /// Fit pixels per input pixel, `[x, y]`.
+    scale: [f64; 2],
+}
+
+/// Reads a photo as linear RGB `[H, W, 3]` (gray replicated, alpha dropped) and resizes it
+/// (area filter) so that its longer side is at most `size`, keeping its aspect.
+fn load_photo(path: &Path, size: usize) -> Result<Photo, CliError> {
     let img = read_image::<f64>(path)?;
     let (h, w, c) = img.dim();
-    let k = w.max(h).div_ceil(size.max(1)).max(1);
-    let (ho, wo) = (h / k, w / k);
-    if ho == 0 || wo == 0 {
-        return Err(CliError::Message(format!(
-            "{}: image {w}x{h} is too small",
+    let input = Array3::from_shape_fn((h, w, 3), |(r, col, k)| {
+        img[[r, col, if c >= 3 { k } else { 0 }]]
+    });
+    let too_small = || {
+        CliError::Message(format!(
+            "{}: image {w}x{h} is too small (at least 16 pixels each way)",
             path.display()
-        )));
+        ))
+    };
+    if w < 16 || h < 16 {
+        return Err(too_small());
     }
-    let mut out = Array3::<f64>::zeros((ho, wo, 3));
-    let inv = 1.0 / (k * k) as f64;
-    for r in 0..ho {
-        for col in 0..wo {
-            for ch in 0..3 {
-                let src = if c >= 3 { ch } else { 0 };
-                let mut s = 0.0;
-                for i in 0..k {
-                    for j in 0..k {
-                        s += img[[r * k + i, col * k + j, src]];
-                    }
-                }
-                out[[r, col, ch]] = s * inv;
+    if w.max(h) <= size {
+        return Ok(Photo {
+            fit: input.clone(),
+            input,
+            scale: [1.0, 1.0],
+        });
+    }
+    let f = size as f64 / w.max(h) as f64;
+    let (wo, ho) = (
+        ((w as f64 * f).round() as usize).max(1),
+        ((h as f64 * f).round() as usize).max(1),
+    );
+    if wo < 8 || ho < 8 {
+        return Err(too_small());
+    }
+    Ok(Photo {
+        fit: resize_area(&input, ho, wo),
+        scale: [wo as f64 / w as f64, ho as f64 / h as f64],
+        input,
+    })
+}
+
+/// Input pixels and weights (overlap / footprint) of each of `n_out` output pixels along an
+/// axis of `n_in` pixels: output pixel `j` covers `[j, j + 1) n_in / n_out`.
+fn area_weights(n_in: usize, n_out: usize) -> Vec<Vec<(usize, f64)>> {
+    let r = n_in as f64 / n_out as f64;
+    (0..n_out)
+        .map(|j| {
+            let (a, b) = (j as f64 * r, (j + 1) as f64 * r);
+            let first = a.floor() as usize;
+            let last = (b.ceil() as usize).min(n_in);
+            (first..last)
+                .filter_map(|i| {
+                    let o = (b.min(i as f64 + 1.0) - a.max(i as f64)) / r;
+                    (o > 0.0).then_some((i, o))
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Area (box) resampling `[H, W, C]` to `[ho, wo, C]`: every output pixel is the mean of the
+/// input over its footprint, pixels cut by the footprint's edge weighted by their overlap
+/// (exact for any scale; no aliasing when shrinking). Separable, rows then columns.
+pub fn resize_area(img: &Array3<f64>, ho: usize, wo: usize) -> Array3<f64> {
+    let (h, w, c) = img.dim();
+    let wx = area_weights(w, wo);
+    let wy = area_weights(h, ho);
+    let mut rows = Array3::<f64>::zeros((h, wo, c));
+    for r in 0..h {
+        for (j, ws) in wx.iter().enumerate() {
+            for k in 0..c {
+                rows[[r, j, k]] = ws.iter().map(|&(i, a)| a * img[[r, i, k]]).sum();
             }
         }
     }
-    Ok((out, k))
+    let mut out = Array3::<f64>::zeros((ho, wo, c));
+    for (r, ws) in wy.iter().enumerate() {
+        for j in 0..wo {
+            for k in 0..c {
+                out[[r, j, k]] = ws.iter().map(|&(i, a)| a * rows[[i, j, k]]).sum();
+            }
+        }
+    }
+    out
 }
 
 struct Progress {
@@ -97,7 +208,7 @@ impl Progress {
             return;
         }
         let last = r.iter + 1 == self.landmark_iters || r.iter + 1 == self.total;
-        if !r.iter.is_multiple_of(10) && !last {
+        if !r.iter.is_multiple_of(5) && !last {
             return;
         }
         let (name, i, n) = if r.stage == 1 {
@@ -109,10 +220,13 @@ impl Progress {
                 self.total - self.landmark_iters,
             )
         };
+        const WIDTH: usize = 24;
+        let filled = (WIDTH * i).checked_div(n).unwrap_or(WIDTH).min(WIDTH);
+        let bar: String = "#".repeat(filled) + &"-".repeat(WIDTH - filled);
         let mut e = std::io::stderr().lock();
         let _ = write!(
             e,
-            "\r{name}: {i:>4}/{n:<4} loss {:.4e}  landmark error {:.3} px   ",
+            "\r{name} [{bar}] {i:>4}/{n:<4} loss {:.4e}  landmark error {:.3} px   ",
             r.loss, r.landmark_error_px
         );
         if last {
@@ -120,6 +234,114 @@ impl Progress {
         }
         let _ = e.flush();
     }
+}
+
+/// What the fit is run on.
+struct Prepared {
+    target: FitTarget,
+    /// The input image `[H, W, 3]` (the synthetic target itself when there is no photo).
+    input: Array3<f64>,
+    /// Fit pixels per input pixel `[x, y]`.
+    scale: [f64; 2],
+    /// The target landmarks used, in input pixels.
+    detected: Array2<f64>,
+    correspondence: String,
+    truth: Option<FaceParams>,
+    /// Seconds of loading (model, photo) and of the landmarks.
+    load_seconds: f64,
+    landmark_seconds: f64,
+}
+
+fn load_model(args: &Args) -> Result<Morphable<f64>, CliError> {
+    let model = match &args.model {
+        Some(dir) => Morphable::<f64>::load(dir)
+            .map_err(|e| CliError::Message(format!("--model {}: {e}", dir.display())))?,
+        None => models::face::default_face(),
+    };
+    if model.n_landmarks() == 0 {
+        return Err(CliError::Message(format!(
+            "--model {}: the model has no landmarks",
+            args.model.as_deref().unwrap_or(Path::new("")).display()
+        )));
+    }
+    Ok(model)
+}
+
+fn prepare(args: &Args, model: &Morphable<f64>, t0: Instant) -> Result<Prepared, CliError> {
+    match (&args.target, &args.landmarks) {
+        (Some(img), _) => {
+            let photo = load_photo(img, args.size)?;
+            let load_seconds = t0.elapsed().as_secs_f64();
+            let t1 = Instant::now();
+            let lms = target_landmarks(args, &photo.input)?;
+            let corr: Correspondence =
+                fit::correspondence(model, lms.points.nrows(), &lms.source).map_err(err)?;
+            let detected = corr.select(&lms.points);
+            let mut landmarks = detected.clone();
+            for mut row in landmarks.rows_mut() {
+                row[0] *= photo.scale[0];
+                row[1] *= photo.scale[1];
+            }
+            Ok(Prepared {
+                target: FitTarget {
+                    image: photo.fit,
+                    landmarks,
+                    points: corr.points,
+                },
+                input: photo.input,
+                scale: photo.scale,
+                detected,
+                correspondence: corr.description,
+                truth: None,
+                load_seconds,
+                landmark_seconds: t1.elapsed().as_secs_f64(),
+            })
+        }
+        (None, None) => {
+            if args.face != 0 {
+                return Err(CliError::Message(format!(
+                    "--face {}: out of range: a synthetic target has one face (use --face 0)",
+                    args.face
+                )));
+            }
+            let load_seconds = t0.elapsed().as_secs_f64();
+            let t1 = Instant::now();
+            let s = fit::synthesize(model, &SynthOptions::new(args.size, args.size, args.seed))
+                .map_err(err)?;
+            Ok(Prepared {
+                input: s.target.image.clone(),
+                scale: [1.0, 1.0],
+                detected: s.target.landmarks.clone(),
+                correspondence: format!(
+                    "{} exact landmarks of the synthetic target",
+                    s.target.points.len()
+                ),
+                target: s.target,
+                truth: Some(s.truth),
+                load_seconds,
+                landmark_seconds: t1.elapsed().as_secs_f64(),
+            })
+        }
+        (None, Some(_)) => Err(CliError::Message(
+            "--landmarks needs --target (the photo they belong to)".into(),
+        )),
+    }
+}
+
+/// Fit pixels `[N, 2]` to input pixels.
+fn to_input_px(px: &Array2<f64>, scale: [f64; 2]) -> Array2<f64> {
+    let mut o = px.clone();
+    for mut row in o.rows_mut() {
+        row[0] /= scale[0];
+        row[1] /= scale[1];
+    }
+    o
+}
+
+/// Every output file, made in memory before anything is written.
+struct Outputs {
+    pngs: Vec<(&'static str, Array3<f64>)>,
+    texts: Vec<(&'static str, String)>,
 }
 
 /// Runs `fit-face`.
@@ -135,39 +357,15 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
     if args.iters == 0 {
         return Err(CliError::Message("--iters must be at least 1".into()));
     }
-    let model: Morphable<f64> = models::face::default_face();
-    let (target, truth, scale) = match (&args.target, &args.landmarks) {
-        (Some(img), Some(lm)) => {
-            let lms = fit::read_landmarks(lm).map_err(err)?;
-            let vertices = fit::landmark_vertices(&model, lms.nrows(), lm).map_err(err)?;
-            let (image, k) = load_photo(img, args.size)?;
-            let landmarks = lms / k as f64;
-            let t = FitTarget {
-                image,
-                landmarks,
-                vertices,
-            };
-            (t, None, k as f64)
-        }
-        (None, None) => {
-            let s = fit::synthesize(&model, &SynthOptions::new(args.size, args.size, args.seed))
-                .map_err(err)?;
-            (s.target, Some(s.truth), 1.0)
-        }
-        (Some(_), None) => {
-            return Err(CliError::Message(
-                "--target needs --landmarks (one `x y` line per landmark)".into(),
-            ))
-        }
-        (None, Some(_)) => {
-            return Err(CliError::Message(
-                "--landmarks needs --target (the photo they belong to)".into(),
-            ))
-        }
-    };
+    let model = load_model(args)?;
+    let prep = prepare(args, &model, start)?;
+    let target = &prep.target;
     let (h, w, _) = target.image.dim();
+    let (hi, wi, _) = prep.input.dim();
     let mut opts = FitOptions::new(w, h, args.iters);
     opts.render.method = method;
+    // The photo's own aspect, so that fit pixels map back to input pixels by `scale`.
+    opts.render.aspect = Some(wi as f64 / hi as f64);
     let progress = Progress {
         on: std::io::stderr().is_terminal(),
         landmark_iters: opts.landmark_iters,
@@ -177,44 +375,83 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
     // On a worker of rayon's global pool (`scope` runs its body on one), so that the fit's
     // parallel regions start and end without waking this thread each time.
     let result =
-        rayon::scope(|_| fit::fit(&model, &target, None, &opts, &mut |r| progress.report(r)))
+        rayon::scope(|_| fit::fit(&model, target, None, &opts, &mut |r| progress.report(r)))
             .map_err(err)?;
     let fit_seconds = fit_start.elapsed().as_secs_f64();
 
+    let out_start = Instant::now();
     let renderer = FaceRenderer::new(&model, opts.render.clone()).map_err(err)?;
-    let (img, px) = renderer.render(&result.params).map_err(err)?;
-    let fitted_lm = px.select(ndarray::Axis(0), &target.vertices);
-    let lm_err = fit::landmark_error_px(&fitted_lm, &target.landmarks) * scale;
+    let (img, _) = renderer.render(&result.params).map_err(err)?;
+    let fitted_px = renderer
+        .landmarks_px(&result.params, &target.points)
+        .map_err(err)?;
+    let fitted_in = to_input_px(&fitted_px, prep.scale);
+    let lm_err = fit::landmark_error_px(&fitted_in, &prep.detected);
     let rmse = fit::photometric_rmse(&img, &target.image);
-    let (_, px0) = renderer.render(&result.initial).map_err(err)?;
-    let lm_err0 = fit::landmark_error_px(
-        &px0.select(ndarray::Axis(0), &target.vertices),
-        &target.landmarks,
-    ) * scale;
+    let initial_in = to_input_px(
+        &renderer
+            .landmarks_px(&result.initial, &target.points)
+            .map_err(err)?,
+        prep.scale,
+    );
+    let lm_err0 = fit::landmark_error_px(&initial_in, &prep.detected);
+    let mean_scale = 0.5 * (prep.scale[0] + prep.scale[1]);
+    let n1 = opts.landmark_iters;
+    let stage1_err = result
+        .history
+        .get(n1)
+        .map(|r| r.landmark_error_px / mean_scale)
+        .unwrap_or(lm_err);
 
-    std::fs::create_dir_all(&args.out).map_err(|e| {
-        CliError::Message(format!("{}: cannot create folder: {e}", args.out.display()))
-    })?;
-    let out = |name: &str| args.out.join(name);
-    write_png(out("fit.png"), &img.slice(ndarray::s![.., .., 0..3]))?;
-    write_png(
-        out("overlay.png"),
-        &overlay(&target.image, &img, &target.landmarks, &fitted_lm),
-    )?;
-    write_text(
-        &out("loss_curve.svg"),
-        &loss_curve_svg(&result, opts.landmark_iters),
-    )?;
-    write_text(
-        &out("params.json"),
-        &serde_json::to_string_pretty(&params_json(&model, &result.params, method, w, h))
-            .expect("json"),
-    )?;
+    // The fit drawn at the input's resolution (hard rasterization).
+    let mut full = RenderOptions::new(wi, hi);
+    full.aspect = opts.render.aspect;
+    let full_img = if (wi, hi) == (w, h) && method == Method::Hard {
+        img.clone()
+    } else {
+        FaceRenderer::new(&model, full)
+            .map_err(err)?
+            .render(&result.params)
+            .map_err(err)?
+            .0
+    };
+    let mut outs = Outputs {
+        pngs: vec![
+            ("fit.png", img.slice(s![.., .., 0..3]).to_owned()),
+            (
+                "overlay.png",
+                overlay(&prep.input, &full_img, &prep.detected, &fitted_in),
+            ),
+            ("compare.png", compare(&prep.input, &full_img)),
+        ],
+        texts: vec![
+            ("landmarks.txt", points_text(&fitted_in)),
+            ("detected_landmarks.txt", points_text(&prep.detected)),
+            (
+                "loss_curve.svg",
+                loss_curve_svg(&result, opts.landmark_iters),
+            ),
+            (
+                "params.json",
+                serde_json::to_string_pretty(&params_json(
+                    &model,
+                    &result.params,
+                    method,
+                    [w, h],
+                    [wi, hi],
+                ))
+                .expect("json"),
+            ),
+        ],
+    };
+    mesh_outputs(&model, &result.params, &mut outs)?;
+    let outputs_seconds = out_start.elapsed().as_secs_f64();
 
-    let n1 = opts.landmark_iters.max(1) as f64;
-    let n2 = opts.full_iters.max(1) as f64;
+    let n1f = opts.landmark_iters.max(1) as f64;
+    let n2f = opts.full_iters.max(1) as f64;
     let mut report = json!({
         "method": method.name(),
+        "model": model.name(),
         "iterations": args.iters,
         "landmark_iterations": opts.landmark_iters,
         "full_iterations": opts.full_iters,
@@ -225,19 +462,34 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
         "total_seconds": 0.0,
         "stage_seconds": result.stage_seconds,
         "seconds_per_iteration": {
-            "landmarks": result.stage_seconds[0] / n1,
-            "full": result.stage_seconds[1] / n2,
+            "landmarks": result.stage_seconds[0] / n1f,
+            "full": result.stage_seconds[1] / n2f,
         },
+        "stages": [
+            {"stage": "load", "seconds": prep.load_seconds},
+            {"stage": "landmarks", "seconds": prep.landmark_seconds,
+             "landmarks": target.points.len(), "correspondence": prep.correspondence},
+            {"stage": "pose_init", "seconds": result.init_seconds,
+             "landmark_error_px": lm_err0},
+            {"stage": "stage1", "seconds": result.stage_seconds[0],
+             "iterations": opts.landmark_iters, "landmark_error_px": stage1_err},
+            {"stage": "stage2", "seconds": result.stage_seconds[1],
+             "iterations": opts.full_iters, "landmark_error_px": lm_err,
+             "photometric_rmse": rmse},
+            {"stage": "outputs", "seconds": outputs_seconds},
+        ],
         "width": w,
         "height": h,
-        "landmarks": target.vertices.len(),
+        "input_width": wi,
+        "input_height": hi,
+        "landmarks": target.points.len(),
         "target": match &args.target {
             Some(p) => p.display().to_string(),
             None => "synthetic".to_string(),
         },
         "final_loss": result.history.last().map(|r| r.loss),
     });
-    if let Some(truth) = &truth {
+    if let Some(truth) = &prep.truth {
         let true_shape = truth.shape(&model).map_err(err)?;
         let fit_shape = result.params.shape(&model).map_err(err)?;
         let mean = model.mean_shape();
@@ -247,7 +499,19 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
             json!(fit::shape_error_scale_aligned_mm(&fit_shape, &true_shape));
         report["mean_shape_error_mm"] = json!(fit::shape_error_mm(&mean, &true_shape));
     } else {
-        report["image_scale"] = json!(scale);
+        report["image_scale"] = json!(prep.scale);
+    }
+
+    // Every input was good and the fit ran: only now the folder and the files.
+    std::fs::create_dir_all(&args.out).map_err(|e| {
+        CliError::Message(format!("{}: cannot create folder: {e}", args.out.display()))
+    })?;
+    let out = |name: &str| args.out.join(name);
+    for (name, png) in &outs.pngs {
+        write_png(out(name), png)?;
+    }
+    for (name, text) in &outs.texts {
+        write_text(&out(name), text)?;
     }
     let total = start.elapsed().as_secs_f64();
     report["total_seconds"] = json!(total);
@@ -268,8 +532,8 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
     println!(
         "time: {fit_seconds:.2} s fit ({} iterations: {:.1} ms/iter landmarks, {:.1} ms/iter all terms), {total:.2} s in all",
         args.iters,
-        1e3 * result.stage_seconds[0] / n1,
-        1e3 * result.stage_seconds[1] / n2
+        1e3 * result.stage_seconds[0] / n1f,
+        1e3 * result.stage_seconds[1] / n2f
     );
     println!("wrote {}", args.out.display());
     Ok(ExitCode::SUCCESS)
@@ -280,12 +544,184 @@ fn write_text(path: &Path, text: &str) -> Result<(), CliError> {
         .map_err(|e| CliError::Message(format!("{}: cannot write: {e}", path.display())))
 }
 
+/// One `x y` line per point.
+fn points_text(p: &Array2<f64>) -> String {
+    p.rows()
+        .into_iter()
+        .map(|r| format!("{:.4} {:.4}\n", r[0], r[1]))
+        .collect()
+}
+
+/// Side of the baked albedo texture, pixels.
+const TEXTURE_SIZE: usize = 1024;
+
+/// `fit.obj` (the fitted shape in model space, millimetres), `fit.mtl` and, when the model has
+/// uvs, `albedo.png` (the per-vertex albedo baked into uv space); without uvs the OBJ carries
+/// the albedo as vertex colours.
+fn mesh_outputs(
+    model: &Morphable<f64>,
+    p: &FaceParams,
+    outs: &mut Outputs,
+) -> Result<(), CliError> {
+    let shape = p.shape(model).map_err(err)?;
+    let gamma: Vec<f64> = p
+        .z_albedo
+        .iter()
+        .zip(model.sigma_albedo())
+        .map(|(z, s)| z * s)
+        .collect();
+    let albedo = model.eval_albedo(&gamma).map_err(err)?;
+    let mut obj = format!(
+        "# tapestry fit-face: the fitted {} in model space (millimetres, y up, facing +z)\nmtllib fit.mtl\n",
+        model.name()
+    );
+    let uvs = model.uvs();
+    for (i, v) in shape.rows().into_iter().enumerate() {
+        if uvs.is_some() {
+            obj += &format!("v {:.5} {:.5} {:.5}\n", v[0], v[1], v[2]);
+        } else {
+            let a = albedo.row(i);
+            obj += &format!(
+                "v {:.5} {:.5} {:.5} {:.4} {:.4} {:.4}\n",
+                v[0],
+                v[1],
+                v[2],
+                a[0].clamp(0.0, 1.0),
+                a[1].clamp(0.0, 1.0),
+                a[2].clamp(0.0, 1.0)
+            );
+        }
+    }
+    if let Some(uv) = uvs {
+        for t in uv.rows() {
+            obj += &format!("vt {:.6} {:.6}\n", t[0], t[1]);
+        }
+    }
+    obj += "usemtl face\n";
+    for f in model.faces() {
+        let [a, b, c] = f.map(|x| x + 1);
+        if uvs.is_some() {
+            obj += &format!("f {a}/{a} {b}/{b} {c}/{c}\n");
+        } else {
+            obj += &format!("f {a} {b} {c}\n");
+        }
+    }
+    let mut mtl =
+        String::from("# tapestry fit-face\nnewmtl face\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\n");
+    if let Some(uv) = uvs {
+        mtl += "map_Kd albedo.png\n";
+        let region_colour: Vec<Option<[f64; 3]>> = model
+            .face_regions()
+            .iter()
+            .map(|&r| model.regions()[r as usize].albedo)
+            .collect();
+        outs.pngs.push((
+            "albedo.png",
+            bake_albedo(uv, model.faces(), &albedo, &region_colour, TEXTURE_SIZE),
+        ));
+    }
+    outs.texts.push(("fit.obj", obj));
+    outs.texts.push(("fit.mtl", mtl));
+    Ok(())
+}
+
+/// Per-vertex `albedo` `[V, 3]` baked into a `size x size` texture: every triangle drawn in
+/// uv space (`u` right, `v` up, OBJ convention) with its corners' albedo interpolated
+/// barycentrically at pixel centres (or its region's constant colour), later triangles over
+/// earlier ones; then four rounds of dilation (each empty pixel next to drawn ones gets their
+/// mean) so that bilinear lookups at the seams do not pick up the background.
+pub fn bake_albedo(
+    uvs: &Array2<f64>,
+    faces: &[[u32; 3]],
+    albedo: &Array2<f64>,
+    region_colour: &[Option<[f64; 3]>],
+    size: usize,
+) -> Array3<f64> {
+    let n = size as f64;
+    let mut tex = Array3::<f64>::zeros((size, size, 3));
+    let mut filled = Array2::<bool>::from_elem((size, size), false);
+    for (fi, f) in faces.iter().enumerate() {
+        let v = f.map(|x| x as usize);
+        let p = v.map(|i| [uvs[[i, 0]] * n, (1.0 - uvs[[i, 1]]) * n]);
+        let area =
+            (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[2][0] - p[0][0]) * (p[1][1] - p[0][1]);
+        if !area.is_finite() || area.abs() < 1e-12 {
+            continue;
+        }
+        // Pixels whose centres lie in the triangle's bounding box.
+        let span = |k: usize| {
+            let lo = p.iter().map(|q| q[k]).fold(f64::INFINITY, f64::min);
+            let hi = p.iter().map(|q| q[k]).fold(f64::NEG_INFINITY, f64::max);
+            let a = (lo - 0.5).ceil().clamp(0.0, n);
+            let b = ((hi - 0.5).floor() + 1.0).clamp(a, n);
+            a as usize..b as usize
+        };
+        let colour = region_colour.get(fi).copied().flatten();
+        for r in span(1) {
+            for c in span(0) {
+                let (x, y) = (c as f64 + 0.5, r as f64 + 0.5);
+                let edge = |a: [f64; 2], b: [f64; 2]| {
+                    (b[0] - a[0]) * (y - a[1]) - (b[1] - a[1]) * (x - a[0])
+                };
+                let b = [
+                    edge(p[1], p[2]) / area,
+                    edge(p[2], p[0]) / area,
+                    edge(p[0], p[1]) / area,
+                ];
+                if b.iter().any(|&w| w < -1e-9) {
+                    continue;
+                }
+                for k in 0..3 {
+                    tex[[r, c, k]] = match colour {
+                        Some(col) => col[k],
+                        None => (0..3).map(|j| b[j] * albedo[[v[j], k]]).sum(),
+                    };
+                }
+                filled[[r, c]] = true;
+            }
+        }
+    }
+    for _ in 0..4 {
+        let prev = filled.clone();
+        let src = tex.clone();
+        for r in 0..size {
+            for c in 0..size {
+                if prev[[r, c]] {
+                    continue;
+                }
+                let mut sum = [0.0; 3];
+                let mut cnt = 0.0;
+                for (dr, dc) in [(-1isize, 0isize), (1, 0), (0, -1), (0, 1)] {
+                    let (rr, cc) = (r as isize + dr, c as isize + dc);
+                    if rr < 0 || cc < 0 || rr >= size as isize || cc >= size as isize {
+                        continue;
+                    }
+                    let (rr, cc) = (rr as usize, cc as usize);
+                    if prev[[rr, cc]] {
+                        for (k, s) in sum.iter_mut().enumerate() {
+                            *s += src[[rr, cc, k]];
+                        }
+                        cnt += 1.0;
+                    }
+                }
+                if cnt > 0.0 {
+                    for (k, s) in sum.iter().enumerate() {
+                        tex[[r, c, k]] = s / cnt;
+                    }
+                    filled[[r, c]] = true;
+                }
+            }
+        }
+    }
+    tex
+}
+
 fn params_json(
     model: &Morphable<f64>,
     p: &FaceParams,
     method: Method,
-    w: usize,
-    h: usize,
+    fit_size: [usize; 2],
+    input_size: [usize; 2],
 ) -> serde_json::Value {
     let scaled = |z: &[f64], s: ndarray::ArrayView1<'_, f64>| -> Vec<f64> {
         z.iter().zip(s.iter()).map(|(a, b)| a * b).collect()
@@ -293,11 +729,13 @@ fn params_json(
     json!({
         "model": model.name(),
         "method": method.name(),
-        "image": {"width": w, "height": h},
+        "image": {"width": fit_size[0], "height": fit_size[1]},
+        "input_image": {"width": input_size[0], "height": input_size[1]},
         "camera": {
             "view": "identity (camera at the origin looking down -z, y up)",
             "focal": p.focal,
             "fov_y_deg": p.fov_y_deg(),
+            "aspect": input_size[0] as f64 / input_size[1] as f64,
             "near_mm": fit::NEAR_MM,
             "far_mm": fit::FAR_MM,
         },
@@ -311,6 +749,26 @@ fn params_json(
         "gamma_albedo": scaled(&p.z_albedo, model.sigma_albedo()),
         "sh": p.sh,
     })
+}
+
+/// Input | fit (the render over the input where it covers it) | absolute difference, side by
+/// side, each `[H, W, 3]`.
+fn compare(input: &Array3<f64>, render: &Array3<f64>) -> Array3<f64> {
+    let (h, w, _) = input.dim();
+    let mut o = Array3::<f64>::zeros((h, 3 * w, 3));
+    for r in 0..h {
+        for c in 0..w {
+            let a = render[[r, c, 3]];
+            for k in 0..3 {
+                let x = input[[r, c, k]];
+                let f = (1.0 - a) * x + a * render[[r, c, k]];
+                o[[r, c, k]] = x;
+                o[[r, w + c, k]] = f;
+                o[[r, 2 * w + c, k]] = (f - x).abs();
+            }
+        }
+    }
+    o
 }
 
 /// The fit blended over the target where it covers it, with the target landmarks (green)
@@ -331,7 +789,7 @@ fn overlay(
             }
         }
     }
-    let radius: isize = if w.max(h) >= 200 { 1 } else { 0 };
+    let radius = (w.max(h) / 200) as isize;
     let mut dot = |p: ndarray::ArrayView1<'_, f64>, col: [f64; 3]| {
         let (x, y) = (p[0].floor() as isize, p[1].floor() as isize);
         for dy in -radius..=radius {
@@ -435,4 +893,58 @@ fn loss_curve_svg(result: &FitResult, landmark_iters: usize) -> String {
         pts.join(" ")
     );
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn area_resize_keeps_means_and_matches_box_filters() {
+        let img = Array3::from_shape_fn((12, 10, 3), |(r, c, k)| {
+            ((r * 7 + c * 3 + k * 5) % 11) as f64 / 10.0
+        });
+        // An integer factor: the plain box mean.
+        let half = resize_area(&img, 6, 5);
+        for (r, c, k) in [(0, 0, 0), (3, 2, 1), (5, 4, 2)] {
+            let want = (0..2)
+                .flat_map(|i| (0..2).map(move |j| (i, j)))
+                .map(|(i, j)| img[[2 * r + i, 2 * c + j, k]])
+                .sum::<f64>()
+                / 4.0;
+            assert!((half[[r, c, k]] - want).abs() < 1e-12);
+        }
+        // Any factor: weights sum to 1 (constants stay) and the image mean is kept.
+        let odd = resize_area(&img, 7, 3);
+        let flat = resize_area(&Array3::from_elem((12, 10, 1), 0.3), 5, 7);
+        assert!(flat.iter().all(|v| (v - 0.3).abs() < 1e-12));
+        for k in 0..3 {
+            let m_in = img.slice(s![.., .., k]).mean().unwrap();
+            let m_out = odd.slice(s![.., .., k]).mean().unwrap();
+            assert!((m_in - m_out).abs() < 1e-12, "{m_in} vs {m_out}");
+        }
+    }
+
+    #[test]
+    fn baked_albedo_interpolates_the_corners() {
+        let uvs = Array2::from_shape_vec((3, 2), vec![0.0, 0.0, 1.0, 0.0, 0.0, 1.0]).unwrap();
+        let albedo =
+            Array2::from_shape_vec((3, 3), vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+                .unwrap();
+        let n = 16;
+        let tex = bake_albedo(&uvs, &[[0, 1, 2]], &albedo, &[None], n);
+        // Texel (row 12, col 2): centre (2.5, 12.5) = uv (2.5 / 16, 1 - 12.5 / 16).
+        let (u, v) = (2.5 / 16.0, 1.0 - 12.5 / 16.0);
+        let want = [1.0 - u - v, u, v];
+        for k in 0..3 {
+            assert!((tex[[12, 2, k]] - want[k]).abs() < 1e-12);
+        }
+        // Beyond the diagonal: four dilation rounds fill pixels next to the triangle, the far
+        // corner stays empty.
+        assert!(tex.slice(s![0, 15, ..]).iter().all(|&x| x == 0.0));
+        assert!(tex.slice(s![0, 0, ..]).iter().any(|&x| x > 0.0));
+        // A region colour replaces the interpolation.
+        let tex = bake_albedo(&uvs, &[[0, 1, 2]], &albedo, &[Some([0.1, 0.2, 0.3])], n);
+        assert_eq!(tex[[12, 2, 1]], 0.2);
+    }
 }

@@ -121,16 +121,25 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Fit the shipped face model to a synthetic target (default) or to a photo with 2D
-    /// landmarks; writes params.json, fit.png, overlay.png, loss_curve.svg and report.json.
+    /// Fit a morphable model (the shipped face model by default) to a synthetic target
+    /// (default) or to a photo with 2D landmarks; writes the fitted mesh (fit.obj, fit.mtl,
+    /// albedo.png), landmarks.txt, detected_landmarks.txt, fit.png, overlay.png, compare.png,
+    /// params.json, loss_curve.svg and report.json.
     FitFace {
-        /// Target photo (PNG, or .npy [H, W, C]); without it a synthetic target is made.
-        #[arg(long, requires = "landmarks")]
+        /// Target photo (PNG, JPEG, or .npy [H, W, C]; any size, gray or colour); without it a
+        /// synthetic target is made.
+        #[arg(long)]
         target: Option<PathBuf>,
-        /// Landmarks of the photo: one `x y` line per landmark in pixels (468 lines: one per
-        /// model vertex, MediaPipe face-mesh order).
+        /// Landmarks of the photo: one `x y` line per landmark in the photo's pixels (468
+        /// MediaPipe face-mesh points, 68 iBUG points, or one per model landmark / vertex).
         #[arg(long, requires = "target")]
         landmarks: Option<PathBuf>,
+        /// Model folder (models/README.md layout); default: the shipped face model.
+        #[arg(long)]
+        model: Option<PathBuf>,
+        /// Which face of the photo, counted from the largest (0); must be 0 with --landmarks.
+        #[arg(long, default_value_t = 0)]
+        face: usize,
         /// Output folder.
         #[arg(long, default_value = "fit-face-out")]
         out: PathBuf,
@@ -144,7 +153,7 @@ pub enum Command {
         #[arg(long, default_value = "hard")]
         method: String,
         /// Size in pixels of the synthetic target (square); photos larger than this are
-        /// downscaled by an integer factor to fit.
+        /// resized (area filter, aspect kept) so that their longer side is this.
         #[arg(long, default_value_t = 256)]
         size: usize,
     },
@@ -251,6 +260,8 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
         Command::FitFace {
             target,
             landmarks,
+            model,
+            face,
             out,
             iters,
             seed,
@@ -259,6 +270,8 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
         } => fit_face::run(&fit_face::Args {
             target,
             landmarks,
+            model,
+            face,
             out,
             iters,
             seed,

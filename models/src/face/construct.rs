@@ -7,7 +7,7 @@ use ndarray::{Array1, Array2};
 use super::geom::{add, centroid, cross, gram_schmidt, norm, scale, smoothstep, sub, Graph, V3};
 use super::{CANONICAL_OBJ, CONTOURS_JSON};
 use crate::error::{ModelError, Result};
-use crate::morphable::{Morphable, MorphableParts, Region};
+use crate::morphable::{LandmarkScheme, Morphable, MorphableParts, Region};
 
 const N_VERTICES: usize = 468;
 const N_FACES: usize = 898;
@@ -1121,6 +1121,8 @@ pub fn build_face_model() -> Result<Morphable<f64>> {
         faces: obj.faces.iter().map(|t| [t[0] as u32, t[1] as u32, t[2] as u32]).collect(),
         uvs: Some(uvs),
         landmarks: all,
+        landmark_points: vec![],
+        landmark_scheme: Some(LandmarkScheme::MediaPipe468),
         landmark_groups: x.c.groups.clone(),
         regions,
         face_regions: labels,

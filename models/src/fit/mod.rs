@@ -16,7 +16,7 @@
 //! ```
 //!
 //! with `m` the rendered face region (the render's alpha, held constant in each step), `rho`
-//! the Charbonnier penalty, `x_l` the projected landmark vertices and `y_l` the target
+//! the Charbonnier penalty, `x_l` the projected landmark points and `y_l` the target
 //! landmarks in pixels.
 //!
 //! Schedule ([`fit`]): the pose is initialised in closed form from the landmarks' centroid
@@ -45,14 +45,16 @@ use ndarray::{Array2, Array3, ArrayD, IxDyn};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-pub use landmarks::{landmark_vertices, read_landmarks, LandmarkFileError};
+pub use landmarks::{
+    correspondence, read_landmarks, Correspondence, LandmarkFileError, MEDIAPIPE_TO_IBUG68,
+};
 pub use render::{
     check_method, Active, FaceRenderer, ParamVars, RenderOptions, FAR_MM, NEAR_MM,
     SUPPORTED_METHODS,
 };
 pub use synth::{euler_to_axis_angle, synthesize, SynthOptions, Synthetic};
 
-use crate::morphable::Morphable;
+use crate::morphable::{LandmarkPoint, Morphable};
 
 /// `Y_00` of the SH basis (CONVENTIONS).
 pub const SH_Y00: f64 = 0.282095;
@@ -212,8 +214,9 @@ pub struct FitTarget {
     pub image: Array3<f64>,
     /// Landmark positions `[L, 2]` in pixels (x right, y down, pixel centres at +0.5).
     pub landmarks: Array2<f64>,
-    /// The model vertex of each landmark (`L` entries).
-    pub vertices: Vec<usize>,
+    /// The model point of each landmark (`L` entries): a vertex or a weighted sum of up to
+    /// three vertices (a point on a triangle), interpolated on the tape.
+    pub points: Vec<LandmarkPoint>,
 }
 
 /// Weights of the loss terms (see the module docs).
@@ -344,6 +347,8 @@ pub struct FitResult {
     pub initial: FaceParams,
     /// One record per step.
     pub history: Vec<StepRecord>,
+    /// Seconds spent in the pose initialisation.
+    pub init_seconds: f64,
     /// Seconds spent in stage 1 and stage 2.
     pub stage_seconds: [f64; 2],
 }
@@ -415,7 +420,7 @@ pub fn initial_pose(
     p.focal = focal;
     let mean = model.mean_shape();
     let aspect = width as f64 / height as f64;
-    let n = target.vertices.len().max(1) as f64;
+    let n = target.points.len().max(1) as f64;
     // Normalised image coordinates (X / D, Y / D) of the target landmarks.
     let norm: Vec<[f64; 2]> = target
         .landmarks
@@ -427,9 +432,12 @@ pub fn initial_pose(
         })
         .collect();
     let pts: Vec<[f64; 3]> = target
-        .vertices
+        .points
         .iter()
-        .map(|&v| [mean[[v, 0]], mean[[v, 1]], mean[[v, 2]]])
+        .map(|q| {
+            let x = q.eval(mean.view());
+            [x[0], x[1], x[2]]
+        })
         .collect();
     let c_img = [
         norm.iter().map(|a| a[0]).sum::<f64>() / n,
@@ -496,9 +504,9 @@ impl Problem<'_> {
         let s = 0.5 * o.width.max(o.height) as f64;
         let px = self
             .renderer
-            .project_px(world, v.focal, &self.target.vertices)?;
+            .project_px(world, v.focal, &self.target.points)?;
         let y = tape.var_shared(self.target_px.clone(), false);
-        let nl = self.target.vertices.len().max(1) as f64;
+        let nl = self.target.points.len().max(1) as f64;
         let lmk = (px - y).square().sum() * (1.0 / (nl * s * s));
         let mut loss = lmk * w.landmarks;
         if active.shape {
@@ -665,18 +673,32 @@ pub fn fit(
             o.width
         )));
     }
-    if target.landmarks.nrows() != target.vertices.len() || target.landmarks.ncols() != 2 {
+    if target.landmarks.nrows() != target.points.len() || target.landmarks.ncols() != 2 {
         return Err(FitError::Invalid(format!(
-            "{} landmark positions for {} landmark vertices",
+            "{} landmark positions for {} landmark points",
             target.landmarks.nrows(),
-            target.vertices.len()
+            target.points.len()
         )));
     }
-    if let Some(&v) = target.vertices.iter().find(|&&v| v >= model.n_vertices()) {
+    if let Some(&v) = target
+        .points
+        .iter()
+        .flat_map(|q| q.vertices.iter())
+        .find(|&&v| v >= model.n_vertices())
+    {
         return Err(FitError::Invalid(format!(
             "landmark vertex {v} out of range (the model has {} vertices)",
             model.n_vertices()
         )));
+    }
+    if target
+        .points
+        .iter()
+        .any(|q| q.weights.iter().any(|w| !w.is_finite()))
+    {
+        return Err(FitError::Invalid(
+            "landmark point weights hold non-finite values".into(),
+        ));
     }
     if target.landmarks.iter().any(|v| !v.is_finite())
         || target.image.iter().any(|v| !v.is_finite())
@@ -685,7 +707,9 @@ pub fn fit(
     }
     let renderer = FaceRenderer::new(model, o.clone())?;
     let focal = focal.unwrap_or_else(|| focal_from_fov_deg(DEFAULT_FOV_Y_DEG));
+    let t_init = Instant::now();
     let initial = initial_pose(model, target, w, h, focal);
+    let init_seconds = t_init.elapsed().as_secs_f64();
     let problem = Problem {
         renderer,
         target,
@@ -776,6 +800,7 @@ pub fn fit(
         params,
         initial,
         history,
+        init_seconds,
         stage_seconds,
     })
 }

@@ -32,7 +32,7 @@ use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
 use render_ops::transform::{axis_angle_to_matrix, perspective_clip, rigid_transform};
 
 use super::{FaceParams, FitError};
-use crate::morphable::{Morphable, RegionSplit};
+use crate::morphable::{landmark_combination, LandmarkPoint, Morphable, RegionSplit};
 
 /// Near plane of the fitting camera, millimetres.
 pub const NEAR_MM: f64 = 50.0;
@@ -94,6 +94,10 @@ pub struct RenderOptions {
     pub gamma: f64,
     /// DIB-R `delta` (squared NDC units).
     pub delta: f64,
+    /// Aspect ratio of the projection; `None`: `width / height`. A photo resized to the fit's
+    /// size keeps its own aspect here, so that the fit's pixels map back to the photo's by a
+    /// scale per axis.
+    pub aspect: Option<f64>,
 }
 
 impl RenderOptions {
@@ -107,6 +111,7 @@ impl RenderOptions {
             sigma: 1e-4,
             gamma: 1e-4,
             delta: render_ops::scene::DEFAULT_DIBR_DELTA,
+            aspect: None,
         }
     }
 }
@@ -175,24 +180,36 @@ impl<'m> FaceRenderer<'m> {
     }
 
     fn clip<'t>(&self, world: Var<'t, f64>, focal: Var<'t, f64>) -> Result<Var<'t, f64>, FitError> {
-        let aspect = self.options.width as f64 / self.options.height as f64;
+        let aspect = self
+            .options
+            .aspect
+            .unwrap_or(self.options.width as f64 / self.options.height as f64);
         Ok(perspective_clip(world, focal, aspect, NEAR_MM, FAR_MM)?)
     }
 
     /// Pixel positions `[N, 2]` (x right, y down, origin at the image's top-left corner, pixel
-    /// centres at +0.5) of the posed vertices `vertices`.
+    /// centres at +0.5) of landmark `points` of the posed vertices `world` (each point the
+    /// weighted sum of its vertices' posed positions, then projected).
     pub fn project_px<'t>(
         &self,
         world: Var<'t, f64>,
         focal: Var<'t, f64>,
-        vertices: &[usize],
+        points: &[LandmarkPoint],
     ) -> Result<Var<'t, f64>, FitError> {
-        let c = self.clip(world.index_select(0, vertices), focal)?;
+        self.project_rows(landmark_combination(world, points), focal)
+    }
+
+    fn project_rows<'t>(
+        &self,
+        positions: Var<'t, f64>,
+        focal: Var<'t, f64>,
+    ) -> Result<Var<'t, f64>, FitError> {
+        let c = self.clip(positions, focal)?;
         let w = c.slice(1, 3, 4);
         let (wd, ht) = (self.options.width as f64, self.options.height as f64);
         let x = (c.slice(1, 0, 1) / w + 1.0) * (0.5 * wd);
         let y = (1.0 - c.slice(1, 1, 2) / w) * (0.5 * ht);
-        Ok(world.tape().concat(&[x, y], 1))
+        Ok(positions.tape().concat(&[x, y], 1))
     }
 
     /// The rendered image `[H, W, 4]` (RGB over the background, alpha = coverage) of posed
@@ -253,9 +270,21 @@ impl<'m> FaceRenderer<'m> {
         let v = self.vars(&tape, p, Active::NONE);
         let world = self.posed(&v);
         let img = self.image(world, &v)?.value()?;
-        let all: Vec<usize> = (0..self.model.n_vertices()).collect();
-        let px = self.project_px(world, v.focal, &all)?.value()?;
+        let px = self.project_rows(world, v.focal)?.value()?;
         Ok((to3(&img), to2(&px)))
+    }
+
+    /// Plain pixel positions `[N, 2]` of landmark `points` of the face posed by `p`.
+    pub fn landmarks_px(
+        &self,
+        p: &FaceParams,
+        points: &[LandmarkPoint],
+    ) -> Result<Array2<f64>, FitError> {
+        let tape = Tape::new();
+        let v = self.vars(&tape, p, Active::NONE);
+        let world = self.posed(&v);
+        let px = self.project_px(world, v.focal, points)?.value()?;
+        Ok(to2(&px))
     }
 }
 

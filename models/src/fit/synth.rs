@@ -59,7 +59,7 @@ impl SynthOptions {
 /// A synthetic target and the parameters that made it.
 #[derive(Clone, Debug)]
 pub struct Synthetic {
-    /// The image (noisy, in [0, 1]) and its exact landmarks (all landmark vertices).
+    /// The image (noisy, in [0, 1]) and its exact landmarks (the model's landmarks).
     pub target: FitTarget,
     /// The true parameters.
     pub truth: FaceParams,
@@ -94,7 +94,7 @@ fn clipped(rng: &mut Rng, scale: f64, cut: f64) -> f64 {
 /// Synthesises a target from `model`: random coefficients (seeded), a random head pose,
 /// random SH light, rendered with `hard` at `supersample^2` samples per pixel, box-filtered,
 /// plus Gaussian pixel noise, clamped to [0, 1]; the landmarks are the exact projections of the
-/// model's landmark vertices.
+/// model's landmarks.
 pub fn synthesize(model: &Morphable<f64>, o: &SynthOptions) -> Result<Synthetic, FitError> {
     if o.width == 0 || o.height == 0 || o.supersample == 0 {
         return Err(FitError::Invalid(format!(
@@ -164,13 +164,20 @@ pub fn synthesize(model: &Morphable<f64>, o: &SynthOptions) -> Result<Synthetic,
             }
         }
     }
-    let vertices = model.landmarks().to_vec();
-    let landmarks = px.select(ndarray::Axis(0), &vertices) / ss as f64;
+    let points = model.landmark_points();
+    let landmarks = match points
+        .iter()
+        .map(|q| q.as_vertex())
+        .collect::<Option<Vec<_>>>()
+    {
+        Some(vertices) => px.select(ndarray::Axis(0), &vertices),
+        None => renderer.landmarks_px(&p, &points)?,
+    } / ss as f64;
     Ok(Synthetic {
         target: FitTarget {
             image: img,
             landmarks,
-            vertices,
+            points,
         },
         truth: p,
     })
