@@ -71,10 +71,10 @@ fn err(e: impl std::fmt::Display) -> CliError {
     CliError::Message(e.to_string())
 }
 
-/// The target's landmarks, in the photo's pixels: the one place they come from. Today
-/// `--landmarks` (`--face` must then be 0); once detection is built in, `--landmarks` stays
-/// an override and without it `photo` (`[H, W, 3]`, the input's pixels) goes to the detector
-/// and `--face` picks one of its faces, largest first.
+/// The target's landmarks, in the photo's pixels: the one place they come from. `--landmarks`
+/// (`--face` must then be 0) is an override; without it `photo` (`[H, W, 3]`, the input's
+/// pixels) goes to the face detector ([`models::detect`]: BlazeFace + the 468-point MediaPipe
+/// face mesh) and `--face` picks one of its faces, largest first.
 pub fn target_landmarks(args: &Args, photo: &Array3<f64>) -> Result<Landmarks2D, CliError> {
     let (h, w, _) = photo.dim();
     match &args.landmarks {
@@ -92,14 +92,25 @@ pub fn target_landmarks(args: &Args, photo: &Array3<f64>) -> Result<Landmarks2D,
                 source: path.clone(),
             })
         }
-        None => Err(CliError::Message(format!(
-            "--target {} ({w}x{h}): no --landmarks given and this build has no face \
-             detection; give --landmarks (one `x y` line per landmark)",
-            args.target
-                .as_deref()
-                .map(|p| p.display().to_string())
-                .unwrap_or_default()
-        ))),
+        None => {
+            let target = args.target.clone().unwrap_or_default();
+            let faces = models::detect::detect_landmarks(photo.view()).map_err(|e| {
+                CliError::Message(format!("--target {} ({w}x{h}): {e}", target.display()))
+            })?;
+            let n = faces.len();
+            let face = faces.into_iter().nth(args.face).ok_or_else(|| {
+                CliError::Message(format!(
+                    "--face {}: out of range: {} has {n} face{} (largest first, from 0)",
+                    args.face,
+                    target.display(),
+                    if n == 1 { "" } else { "s" }
+                ))
+            })?;
+            Ok(Landmarks2D {
+                points: face.points.slice(ndarray::s![.., 0..2]).to_owned(),
+                source: target,
+            })
+        }
     }
 }
 
