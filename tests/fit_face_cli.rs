@@ -452,7 +452,10 @@ fn a_photo_without_landmarks_is_detected_and_fitted() {
     let report = json(&out.join("report.json"));
     let rmse = report["photometric_rmse"].as_f64().unwrap();
     eprintln!("detected {detected:.2} px, fitted {fitted:.2} px from the truth, RMSE {rmse:.4}");
-    assert!(detected < 8.0, "detected landmarks {detected} px from the truth");
+    assert!(
+        detected < 8.0,
+        "detected landmarks {detected} px from the truth"
+    );
     assert!(fitted < 8.0, "fitted landmarks {fitted} px from the truth");
     assert!(rmse < 0.08, "photometric RMSE {rmse}");
 }
