@@ -50,9 +50,9 @@ pub use opendr::opendr;
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Real, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
 
-use crate::approx::Screen;
+use crate::approx::{clip_tensor, Screen};
 use crate::error::RenderError;
 use crate::raster::Fragments;
 use crate::rasterize::Rasterized;
@@ -132,6 +132,57 @@ impl<T: Real> Geometry<T> {
     /// The screen geometry of clip positions `clip` at the rasterizer's size.
     pub fn screen(&self, clip: &Tensor<T>) -> Screen {
         Screen::new(clip, self.fragments.width, self.fragments.height)
+    }
+}
+
+/// The boundary term of an op whose forward is the identity on the shaded image ([`opendr()`],
+/// [`nmr()`]): `dL/dclip` `[V, 4]` from the screen geometry, the image and `dL/dI` (in `f64`).
+pub(crate) trait BoundaryTerm: 'static {
+    /// The op's name.
+    const NAME: &'static str;
+    /// The gradient of the loss with respect to the clip positions.
+    fn clip_gradient<T: Real>(
+        &self,
+        geo: &Geometry<T>,
+        screen: &Screen,
+        img: &[f64],
+        g: &[f64],
+    ) -> Vec<[f64; 4]>;
+}
+
+/// The op of a [`BoundaryTerm`]: the image passes through, `dL/dI` passes back to it unchanged
+/// (the exact interior part), and the term adds the boundary part to the clip positions.
+pub(crate) struct PassThrough<T: Real, B> {
+    pub geo: Geometry<T>,
+    pub term: B,
+}
+
+impl<T: Real, B: BoundaryTerm> PassThrough<T, B> {
+    /// Applies the op to `[color, clip]`.
+    pub fn apply<'t>(self, color: Var<'t, T>, clip: Var<'t, T>) -> Var<'t, T> {
+        color.tape().apply(self, &[color, clip])
+    }
+}
+
+impl<T: Real, B: BoundaryTerm> Op<T> for PassThrough<T, B> {
+    fn name(&self) -> &'static str {
+        B::NAME
+    }
+
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+        Ok(vec![inputs[0].clone()])
+    }
+
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        let g_color = ctx.needs_grad[0].then(|| ctx.grad_outputs[0].clone());
+        let g_clip = ctx.needs_grad[1].then(|| {
+            let screen = self.geo.screen(ctx.inputs[1]);
+            let g =
+                self.term
+                    .clip_gradient(&self.geo, &screen, &to_f64(ctx.inputs[0]), &grad_out(ctx));
+            clip_tensor(g)
+        });
+        Ok(vec![g_color, g_clip])
     }
 }
 

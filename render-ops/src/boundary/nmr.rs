@@ -21,11 +21,13 @@
 //!
 //! Deterministic: per scanline in parallel, reduced in scanline order.
 
-use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use std::sync::Arc;
 
-use super::{grad_out, to_f64, Geometry};
-use crate::approx::clip_tensor;
+use autodiff::{Real, Var};
+
+use super::{BoundaryTerm, Geometry, PassThrough};
 use crate::approx::nmr::Sweeper;
+use crate::approx::Screen;
 use crate::error::RenderError;
 use crate::rasterize::Rasterized;
 
@@ -41,46 +43,33 @@ pub fn nmr<'t, T: Real>(
     raster: &Rasterized<'t, T>,
     clip: Var<'t, T>,
 ) -> Result<Var<'t, T>, RenderError> {
-    let geo = Geometry::new("boundary::nmr", color, raster, clip)?;
-    let op = NmrOp {
-        geo,
+    let geo = Geometry::new(NmrTerm::NAME, color, raster, clip)?;
+    let term = NmrTerm {
         faces: raster.faces.clone(),
     };
-    Ok(color.tape().apply(op, &[color, clip]))
+    Ok(PassThrough { geo, term }.apply(color, clip))
 }
 
-struct NmrOp<T: Real> {
-    geo: Geometry<T>,
-    faces: std::sync::Arc<Vec<[u32; 3]>>,
+/// NMR's edge sweeps over the rasterized faces (not welded: the sweeps follow each face).
+struct NmrTerm {
+    faces: Arc<Vec<[u32; 3]>>,
 }
 
-impl<T: Real> Op<T> for NmrOp<T> {
-    fn name(&self) -> &'static str {
-        "boundary::nmr"
-    }
+impl BoundaryTerm for NmrTerm {
+    const NAME: &'static str = "boundary::nmr";
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        Ok(vec![inputs[0].clone()])
-    }
-
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let g_color = ctx.needs_grad[0].then(|| ctx.grad_outputs[0].clone());
-        if !ctx.needs_grad[1] {
-            return Ok(vec![g_color, None]);
-        }
-        let screen = self.geo.screen(ctx.inputs[1]);
+    fn clip_gradient<T: Real>(
+        &self,
+        geo: &Geometry<T>,
+        screen: &Screen,
+        img: &[f64],
+        g: &[f64],
+    ) -> Vec<[f64; 4]> {
         let sw = Sweeper {
             faces: &self.faces,
             // Only the outward colours from vertex attributes are interpolated.
             persp: true,
         };
-        let g = sw.boundary(
-            &self.geo.fragments,
-            &screen,
-            &to_f64(ctx.inputs[0]),
-            &grad_out(ctx),
-            None,
-        );
-        Ok(vec![g_color, Some(clip_tensor(g))])
+        sw.boundary(&geo.fragments, screen, img, g, None)
     }
 }

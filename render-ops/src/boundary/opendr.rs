@@ -23,12 +23,12 @@
 //!
 //! Deterministic: per image row in parallel, reduced in row order.
 
-use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{Real, Var};
 use rayon::prelude::*;
 
-use super::{grad_out, to_f64, Geometry};
+use super::{BoundaryTerm, Geometry, PassThrough};
 use crate::approx::opendr::{ImageGrad, Px};
-use crate::approx::{clip_tensor, reduce_rows};
+use crate::approx::{reduce_rows, Screen};
 use crate::error::RenderError;
 use crate::rasterize::Rasterized;
 
@@ -44,46 +44,41 @@ pub fn opendr<'t, T: Real>(
     raster: &Rasterized<'t, T>,
     clip: Var<'t, T>,
 ) -> Result<Var<'t, T>, RenderError> {
-    let geo = Geometry::new("boundary::opendr", color, raster, clip)?;
-    Ok(color.tape().apply(OpenDrOp { geo }, &[color, clip]))
+    let geo = Geometry::new(OpenDrTerm::NAME, color, raster, clip)?;
+    Ok(PassThrough {
+        geo,
+        term: OpenDrTerm,
+    }
+    .apply(color, clip))
 }
 
-struct OpenDrOp<T: Real> {
-    geo: Geometry<T>,
-}
+/// OpenDR's single- and multi-boundary terms, per image row.
+struct OpenDrTerm;
 
-impl<T: Real> Op<T> for OpenDrOp<T> {
-    fn name(&self) -> &'static str {
-        "boundary::opendr"
-    }
+impl BoundaryTerm for OpenDrTerm {
+    const NAME: &'static str = "boundary::opendr";
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        Ok(vec![inputs[0].clone()])
-    }
-
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let g_color = ctx.needs_grad[0].then(|| ctx.grad_outputs[0].clone());
-        if !ctx.needs_grad[1] {
-            return Ok(vec![g_color, None]);
-        }
-        let fr = &*self.geo.fragments;
-        let screen = self.geo.screen(ctx.inputs[1]);
+    fn clip_gradient<T: Real>(
+        &self,
+        geo: &Geometry<T>,
+        screen: &Screen,
+        img: &[f64],
+        g: &[f64],
+    ) -> Vec<[f64; 4]> {
+        let fr = &*geo.fragments;
         let px = Px::of(fr);
-        let img = to_f64(ctx.inputs[0]);
-        let g = grad_out(ctx);
         let ig = ImageGrad {
-            faces: &self.geo.welded,
+            faces: &geo.welded,
             boundary_only: true,
         };
-        let nc = self.geo.c;
         let rows: Vec<Vec<(u32, [f64; 2])>> = (0..fr.height)
             .into_par_iter()
             .map(|row| {
                 let mut out = Vec::new();
-                ig.row(&screen, &px, &img, &g, nc, row, &mut out);
+                ig.row(screen, &px, img, g, geo.c, row, &mut out);
                 out
             })
             .collect();
-        Ok(vec![g_color, Some(clip_tensor(reduce_rows(&screen, rows)))])
+        reduce_rows(screen, rows)
     }
 }

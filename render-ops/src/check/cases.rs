@@ -36,6 +36,7 @@ use crate::mesh::Mesh;
 use crate::raster::RasterSettings;
 use crate::rasterize::rasterize;
 use crate::scene::{CameraDesc, ImageDesc, Material, Method, Raster, Scene, SceneDesc};
+use crate::shade::suite::OCTA_FACES;
 use crate::soft::{dibr, softras, DibrSettings, SoftSettings};
 use crate::transform::to_clip;
 
@@ -49,16 +50,6 @@ const OCTA: [[f64; 3]; 6] = [
     [-0.1, -0.8, 0.05],
     [0.1, 0.05, 0.8],
     [-0.05, 0.1, -0.85],
-];
-const OCTA_FACES: [[u32; 3]; 8] = [
-    [0, 2, 4],
-    [2, 1, 4],
-    [1, 3, 4],
-    [3, 0, 4],
-    [2, 0, 5],
-    [1, 2, 5],
-    [3, 1, 5],
-    [0, 3, 5],
 ];
 
 /// A forward that fails with a message: turns a render error into a poisoned variable, which

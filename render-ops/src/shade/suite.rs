@@ -22,7 +22,8 @@ const OCTA: [[f64; 3]; 6] = [
     [0.0, 0.0, 1.0],
     [0.0, 0.0, -1.0],
 ];
-const OCTA_FACES: [[u32; 3]; 8] = [
+/// The octahedron's faces, counter-clockwise seen from outside (also the raster cases' mesh).
+pub(crate) const OCTA_FACES: [[u32; 3]; 8] = [
     [0, 2, 4],
     [2, 1, 4],
     [1, 3, 4],
