@@ -19,7 +19,11 @@
 //! The gradient of a row-invariant input broadcast over rows (a colour `[3]` times `[N, 3]`) is
 //! summed per chunk and the chunk sums are added in chunk order, where eager sums all `N` rows
 //! in one sequence: the two orders differ by rounding only (for `n` rows, within the usual
-//! `n eps` relative bound of a sum; the tests use `1e-12` relative in f64).
+//! `n eps` relative bound of a sum). A row-varying gradient that depends on such a sum (the
+//! tape reduces `x` over all rows to `s`, and a fused op uses `s` again with `x`) inherits the
+//! rounding and is equal to the same bound, not bit for bit. A fused op is recorded on the tape
+//! when it is materialised, so contributions from several ops may reach a shared input in another
+//! order than on the eager tape: equal up to the rounding of those terms' sum.
 
 // Kernels index re-sliced slices of one length (`&a[..n]`): bounds checks vanish and the
 // loops vectorise.
