@@ -14,8 +14,8 @@
 //! face_regions.npy    integer [F], index into "regions"           (optional)
 //! ```
 //!
-//! Floats may be float32 or float64 (either byte order), integers any fixed-size integer
-//! dtype. File names are whatever `model.json` says; the names above are what
+//! Floats may be float16, float32 or float64 (either byte order), integers any fixed-size
+//! integer dtype. File names are whatever `model.json` says; the names above are what
 //! [`Morphable::save`] writes.
 
 use std::collections::BTreeMap;
@@ -192,7 +192,7 @@ pub const UNITS: &[(&str, f64)] = &[("mm", 1.0), ("cm", 10.0), ("m", 1000.0), ("
 
 // ------------------------------------------------------------------------ .npy reading
 
-const FLOAT_DTYPES: &str = "float32 or float64";
+const FLOAT_DTYPES: &str = "float16, float32 or float64";
 const INT_DTYPES: &str = "a fixed-size integer dtype (int8..int64, uint8..uint64)";
 
 fn npy_err(file: &str, e: ReadNpyError) -> ModelError {
@@ -202,7 +202,7 @@ fn npy_err(file: &str, e: ReadNpyError) -> ModelError {
     }
 }
 
-/// A float array (f32 or f64 on disk) as f64.
+/// A float array (f16, f32 or f64 on disk) as f64.
 fn read_floats(src: &Source<'_>, name: &str) -> Result<ArrayD<f64>> {
     let file = src.label(name);
     let bytes = src.read(name)?;
@@ -211,15 +211,65 @@ fn read_floats(src: &Source<'_>, name: &str) -> Result<ArrayD<f64>> {
         Err(ReadNpyError::WrongDescriptor(_)) => {}
         Err(e) => return Err(npy_err(&file, e)),
     }
-    match ArrayD::<f32>::read_npy(&bytes[..]) {
-        Ok(a) => Ok(a.mapv(f64::from)),
-        Err(ReadNpyError::WrongDescriptor(d)) => Err(ModelError::WrongDtype {
+    let d = match ArrayD::<f32>::read_npy(&bytes[..]) {
+        Ok(a) => return Ok(a.mapv(f64::from)),
+        Err(ReadNpyError::WrongDescriptor(d)) => d,
+        Err(e) => return Err(npy_err(&file, e)),
+    };
+    let descr = d.to_string();
+    match swap_half_descr(bytes, "f2", "u2") {
+        Some(bits) if descr.contains("f2") => match ArrayD::<u16>::read_npy(&bits[..]) {
+            Ok(a) => Ok(a.mapv(|b| half::f16::from_bits(b).to_f64())),
+            Err(e) => Err(npy_err(&file, e)),
+        },
+        _ => Err(ModelError::WrongDtype {
             file,
-            found: d.to_string(),
+            found: descr,
             expected: FLOAT_DTYPES,
         }),
-        Err(e) => Err(npy_err(&file, e)),
     }
+}
+
+/// The `.npy` bytes with the header's 2-byte dtype code `from` (`f2` or `u2`, either byte
+/// order) replaced by `to`: ndarray-npy has no half-precision element, so float16 data are
+/// read and written as their `u16` bit patterns under a header that says so. `None` when the
+/// header has no such descriptor.
+fn swap_half_descr(mut bytes: Vec<u8>, from: &str, to: &str) -> Option<Vec<u8>> {
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return None;
+    }
+    let (start, len) = match bytes[6] {
+        1 => (10usize, u16::from_le_bytes([bytes[8], bytes[9]]) as usize),
+        _ if bytes.len() >= 12 => (
+            12,
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+        ),
+        _ => return None,
+    };
+    let header = bytes.get(start..start.checked_add(len)?)?;
+    let at = ["<", ">", "="].iter().find_map(|order| {
+        let pat = format!("'descr': '{order}{from}'");
+        let text = std::str::from_utf8(header).ok()?;
+        text.find(&pat).map(|i| start + i + pat.len() - 3)
+    })?;
+    bytes[at..at + 2].copy_from_slice(to.as_bytes());
+    Some(bytes)
+}
+
+/// Writes `a` as a float16 `.npy` file (NumPy dtype `<f2`), each value rounded to the nearest
+/// half-precision number (IEEE 754 binary16: 11 significant bits, relative error at most
+/// 2^-11 for normal numbers). For compact model files; [`Morphable::load`] reads them back.
+pub fn write_f16_npy(path: &Path, a: &ArrayD<f64>) -> Result<()> {
+    let mut buf = Vec::new();
+    a.mapv(|x| half::f16::from_f64(x).to_bits())
+        .write_npy(&mut buf)
+        .map_err(|e| write_err(path, e))?;
+    let bytes = swap_half_descr(buf, "u2", "f2")
+        .ok_or_else(|| write_err(path, "no u2 descriptor in the npy header"))?;
+    std::fs::write(path, bytes).map_err(|e| ModelError::Io {
+        path: path.to_path_buf(),
+        source: e,
+    })
 }
 
 fn read_ints(src: &Source<'_>, name: &str) -> Result<ArrayD<i64>> {

@@ -7,7 +7,8 @@ use std::sync::OnceLock;
 
 use autodiff::rng::Rng;
 use models::detect::{self, DetectError, FaceDetection, Landmarker, NUM_LANDMARKS};
-use models::fit::{self, FaceRenderer, RenderOptions, SynthOptions};
+use models::fit::{self, FaceParams, FaceRenderer, RenderOptions, SynthOptions};
+use models::Morphable;
 use ndarray::{Array2, Array3};
 use serde_json::Value;
 
@@ -212,9 +213,22 @@ fn render(seed: u64) -> (Array3<f64>, Array2<f64>) {
     let mut o = SynthOptions::new(256, 256, seed);
     (o.max_yaw_deg, o.max_pitch_deg, o.max_roll_deg) = (30.0, 30.0, 30.0);
     let truth = fit::synthesize(&model, &o).unwrap().truth;
-    let ss = o.supersample;
-    let renderer = FaceRenderer::new(&model, RenderOptions::new(256 * ss, 256 * ss)).unwrap();
-    let (big, px) = renderer.render(&truth).unwrap();
+    render_over_background(&model, &truth, o.supersample, seed)
+}
+
+/// `model` posed by `truth`, rendered at 256 x 256 (`ss`^2 samples per pixel) over a
+/// textured background, and the projections of the model's landmarks (pixels).
+fn render_over_background(
+    model: &Morphable<f64>,
+    truth: &FaceParams,
+    ss: usize,
+    seed: u64,
+) -> (Array3<f64>, Array2<f64>) {
+    let renderer = FaceRenderer::new(model, RenderOptions::new(256 * ss, 256 * ss)).unwrap();
+    let (big, _) = renderer.render(truth).unwrap();
+    let px = renderer
+        .landmarks_px(truth, &model.landmark_points())
+        .unwrap();
     // Background: smooth colour gradients plus blocky value noise (a cluttered wall).
     let mut rng = Rng::new(seed ^ 0xB6);
     let cells: Vec<f64> = (0..16 * 16 * 3).map(|_| rng.uniform(0.0, 1.0)).collect();
@@ -268,4 +282,50 @@ fn renders_of_the_shipped_face_model_are_found() {
     // places the landmarks (face oval, lids), so this is a bound, not the 3 px aim.
     assert!(avg < 6.0, "{means:?}");
     assert!(means.iter().all(|&m| m < 9.0), "{means:?}");
+}
+
+/// Renders of the ICT-FaceKit model (`models/data/ict`) at random identity (N(0, 1)),
+/// expression (each blendshape on with probability 0.25, weight in [0, 0.6]), SH light and
+/// pose (yaw +-25, pitch +-15, roll +-15 degrees): the detector's 468 landmarks against the
+/// projections of the model's MediaPipe correspondence points.
+#[test]
+fn renders_of_the_ict_model_are_found_at_its_correspondence_points() {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/data/ict");
+    let model: Morphable<f64> = Morphable::load(dir).unwrap();
+    let mut means = Vec::new();
+    for seed in 0..4 {
+        let mut o = SynthOptions::new(256, 256, 100 + seed);
+        (o.max_yaw_deg, o.max_pitch_deg, o.max_roll_deg) = (25.0, 15.0, 15.0);
+        o.supersample = 1;
+        let mut truth = fit::synthesize(&model, &o).unwrap().truth;
+        let mut rng = Rng::new(seed);
+        let sigma = model.sigma_exp();
+        for (k, z) in truth.z_exp.iter_mut().enumerate() {
+            let on = rng.next_f64() < 0.25;
+            *z = if on {
+                rng.uniform(0.0, 0.6) / sigma[k]
+            } else {
+                0.0
+            };
+        }
+        let (img, lms) = render_over_background(&model, &truth, 2, seed);
+        let faces = landmarker().detect_landmarks(img.view()).unwrap();
+        assert_eq!(faces.len(), 1, "seed {seed}");
+        let (mean, max) = distances(&faces[0].points, &lms);
+        eprintln!(
+            "ICT seed {seed}: score {:.3}, presence {:.3}, landmark error mean {mean:.2} px, max {max:.2} px",
+            faces[0].detection.score, faces[0].presence
+        );
+        means.push(mean);
+    }
+    let avg = means.iter().sum::<f64>() / means.len() as f64;
+    eprintln!(
+        "ICT: mean landmark error over {} renders: {avg:.2} px",
+        means.len()
+    );
+    // Measured (2026-11-28): 4.40 px on average (3.8 to 5.2 px per render), as for the
+    // shipped model's own vertices (5.22 px above): the correspondence is geometric (aligned
+    // and snapped, see models/data/ict/README.md), not fitted to the detector.
+    assert!(avg < 5.5, "{means:?}");
+    assert!(means.iter().all(|&m| m < 8.0), "{means:?}");
 }
