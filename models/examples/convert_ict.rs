@@ -20,7 +20,8 @@
 //!    canonical mesh (the shipped model's mean) is aligned to the ICT mean by a similarity
 //!    transform and a thin-plate spline through the 68 iBUG points (ICT's list against
 //!    `fit::MEDIAPIPE_TO_IBUG68`), then each vertex is snapped to the closest ICT surface
-//!    point;
+//!    point; then refined where the detector (`models::detect`) puts them on frontal renders
+//!    of the model ([`refine_by_detection`]);
 //! 4. a test fixture: ground-truth positions computed from the OBJ text for a few vertices of
 //!    the mean, of single OBJs and of random combinations.
 
@@ -352,6 +353,121 @@ fn npy_i32(path: &Path, a: Array2<i32>) -> Res<()> {
         .map_err(|e| format!("{}: {e}", path.display()))
 }
 
+/// "median, 90%, max" of `d` (mm), for the converter's log.
+fn quantiles_mm(mut d: Vec<f64>) -> String {
+    d.sort_by(f64::total_cmp);
+    let n = d.len();
+    format!(
+        "median {:.2} mm, 90% {:.2} mm, max {:.2} mm",
+        d[n / 2],
+        d[n * 9 / 10],
+        d[n - 1]
+    )
+}
+
+/// The closest point of the mesh `tris` over `v` to `p`: distance, triangle, weights.
+fn closest_on_mesh(p: [f64; 3], v: &[[f64; 3]], tris: &[[usize; 3]]) -> (f64, usize, [f64; 3]) {
+    let mut best = (f64::INFINITY, 0usize, [1.0, 0.0, 0.0]);
+    for (f, t) in tris.iter().enumerate() {
+        let (a, b, c) = (v[t[0]], v[t[1]], v[t[2]]);
+        let w = closest_on_triangle(p, a, b, c);
+        let d = norm(sub(p, blend(w, a, b, c)));
+        if d < best.0 {
+            best = (d, f, w);
+        }
+    }
+    best
+}
+
+/// Detector-consistent landmarks: the model (just written to `out`) is rendered frontally
+/// (384 x 384, front light, grey background) at the mean and at RENDERS - 1 random
+/// identities; each detected landmark is lifted to the front-most face-area triangle under it
+/// (2-D barycentrics; the closest triangle in the image where none covers it), carried to the
+/// mean shape by its barycentrics, averaged over the renders and snapped to the surface. A
+/// landmark the detector places more than MAX_SHIFT_MM away from the geometric one keeps the
+/// geometric one.
+fn refine_by_detection(
+    out: &Path,
+    mean: &[[f64; 3]],
+    tris: &[[usize; 3]],
+    geometric: &[(usize, [f64; 3])],
+) -> Res<Vec<(usize, [f64; 3])>> {
+    use models::fit::{FaceParams, FaceRenderer, RenderOptions};
+    const RENDERS: u64 = 5;
+    const SIZE: usize = 384;
+    const MAX_SHIFT_MM: f64 = 15.0;
+    let model: models::Morphable<f64> = models::Morphable::load(out).map_err(|e| e.to_string())?;
+    let renderer =
+        FaceRenderer::new(&model, RenderOptions::new(SIZE, SIZE)).map_err(|e| e.to_string())?;
+    let landmarker = models::detect::Landmarker::new().map_err(|e| e.to_string())?;
+    let mut sums = vec![[0.0; 3]; geometric.len()];
+    let mut rng = Rng::new(468);
+    for r in 0..RENDERS {
+        let mut p = FaceParams::neutral(&model);
+        if r > 0 {
+            p.z_id = (0..model.n_id())
+                .map(|_| rng.normal().clamp(-2.0, 2.0))
+                .collect();
+        }
+        p.sh[2] = [0.35 / 0.488603; 3]; // light from the camera's side (+z)
+        let (img, px) = renderer.render(&p).map_err(|e| e.to_string())?;
+        let shape = model
+            .eval_shape_standardized(&p.z_id, &p.z_exp)
+            .map_err(|e| e.to_string())?;
+        let rgb = ndarray::Array3::from_shape_fn((SIZE, SIZE, 3), |(y, x, c)| {
+            img[[y, x, c]] + (1.0 - img[[y, x, 3]]) * 0.5
+        });
+        let faces = landmarker
+            .detect_landmarks(rgb.view())
+            .map_err(|e| format!("render {r}: {e}"))?;
+        let lms = &faces.first().ok_or(format!("render {r}: no face"))?.points;
+        if lms.nrows() != geometric.len() {
+            return Err(format!("render {r}: {} landmarks", lms.nrows()));
+        }
+        for (i, sum) in sums.iter_mut().enumerate() {
+            let q = [lms[[i, 0]], lms[[i, 1]], 0.0];
+            // Front-most covering triangle (largest z of the model-space centroid: frontal
+            // view), else the closest one in the image.
+            let mut best: Option<(f64, usize, [f64; 3])> = None;
+            let mut nearest = (f64::INFINITY, 0usize, [1.0, 0.0, 0.0]);
+            for (f, t) in tris.iter().enumerate() {
+                let c2 = |k: usize| [px[[t[k], 0]], px[[t[k], 1]], 0.0];
+                let (a, b, c) = (c2(0), c2(1), c2(2));
+                let w = closest_on_triangle(q, a, b, c);
+                let d = norm(sub(q, blend(w, a, b, c)));
+                if d < 1e-9 {
+                    let z = (0..3).map(|k| shape[[t[k], 2]]).sum::<f64>();
+                    if best.is_none_or(|(bz, _, _)| z > bz) {
+                        best = Some((z, f, w));
+                    }
+                } else if d < nearest.0 {
+                    nearest = (d, f, w);
+                }
+            }
+            let (f, w) = best.map_or((nearest.1, nearest.2), |(_, f, w)| (f, w));
+            let t = tris[f];
+            let on_mean = blend(w, mean[t[0]], mean[t[1]], mean[t[2]]);
+            for c in 0..3 {
+                sum[c] += on_mean[c] / RENDERS as f64;
+            }
+        }
+    }
+    Ok(sums
+        .iter()
+        .zip(geometric)
+        .map(|(p, &(f, w))| {
+            let t = tris[f];
+            let g = blend(w, mean[t[0]], mean[t[1]], mean[t[2]]);
+            if 10.0 * norm(sub(*p, g)) > MAX_SHIFT_MM {
+                (f, w)
+            } else {
+                let (_, f, w) = closest_on_mesh(*p, mean, tris);
+                (f, w)
+            }
+        })
+        .collect())
+}
+
 fn run() -> Res<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let ict = PathBuf::from(
@@ -572,28 +688,17 @@ fn run() -> Res<()> {
         10.0 * rms(&src68s, &dst68)
     );
     let tps = thin_plate(&src68s, &dst68)?;
+    let face_tris = &tris[..n_face_tris];
     let mut points = Vec::with_capacity(468);
     let mut snap = Vec::with_capacity(468);
     for i in 0..mp.n_vertices() {
-        let p = tps(sim(mp_pt(i)));
-        let mut best = (f64::INFINITY, 0usize, [1.0, 0.0, 0.0]);
-        for (f, t) in tris[..n_face_tris].iter().enumerate() {
-            let (a, b, c) = (mean[t[0]], mean[t[1]], mean[t[2]]);
-            let w = closest_on_triangle(p, a, b, c);
-            let d = norm(sub(p, blend(w, a, b, c)));
-            if d < best.0 {
-                best = (d, f, w);
-            }
-        }
-        snap.push(10.0 * best.0);
-        points.push(json!([best.1, best.2[0], best.2[1], best.2[2]]));
+        let (d, f, w) = closest_on_mesh(tps(sim(mp_pt(i))), &mean, face_tris);
+        snap.push(10.0 * d);
+        points.push((f, w));
     }
-    snap.sort_by(f64::total_cmp);
     eprintln!(
-        "MediaPipe vertices snapped to the ICT surface: median {:.2} mm, 90% {:.2} mm, max {:.2} mm",
-        snap[snap.len() / 2],
-        snap[snap.len() * 9 / 10],
-        snap[snap.len() - 1]
+        "MediaPipe vertices snapped to the ICT surface: {}",
+        quantiles_mm(snap)
     );
 
     // ---- model.json
@@ -618,7 +723,7 @@ fn run() -> Res<()> {
         "sigma_id": vec![1.0; id_names.len()],
         "sigma_exp": vec![SIGMA_EXP; exp_names.len()],
         "sigma_albedo": vec![ALBEDO_SIGMA / unit; 3],
-        "landmark_points": points,
+        "landmark_points": points.iter().map(|(f, w)| json!([f, w[0], w[1], w[2]])).collect::<Vec<_>>(),
         "landmark_scheme": "mediapipe468",
         "landmark_groups": groups,
         "regions": [{"name": "skin"}, {"name": "mouth_interior"}, {"name": "eyes"}],
@@ -626,6 +731,31 @@ fn run() -> Res<()> {
         "exp_names": exp_names,
         "albedo_names": ["red", "green", "blue"],
     });
+    std::fs::write(
+        out.join("model.json"),
+        serde_json::to_string(&model).map_err(|e| e.to_string())? + "\n",
+    )
+    .map_err(|e| e.to_string())?;
+
+    // ---- landmarks, step 2: where the detector puts them on renders of the model
+    let refined = refine_by_detection(&out, &mean, face_tris, &points)?;
+    let moved: Vec<f64> = points
+        .iter()
+        .zip(&refined)
+        .map(|(a, b)| {
+            let at = |(f, w): &(usize, [f64; 3])| {
+                let t = face_tris[*f];
+                blend(*w, mean[t[0]], mean[t[1]], mean[t[2]])
+            };
+            10.0 * norm(sub(at(a), at(b)))
+        })
+        .collect();
+    eprintln!("refined by detection: moved {}", quantiles_mm(moved));
+    let mut model = model;
+    model["landmark_points"] = refined
+        .iter()
+        .map(|(f, w)| json!([f, w[0], w[1], w[2]]))
+        .collect();
     std::fs::write(
         out.join("model.json"),
         serde_json::to_string(&model).map_err(|e| e.to_string())? + "\n",

@@ -323,9 +323,10 @@ fn renders_of_the_ict_model_are_found_at_its_correspondence_points() {
         "ICT: mean landmark error over {} renders: {avg:.2} px",
         means.len()
     );
-    // Measured (2026-11-28): 4.40 px on average (3.8 to 5.2 px per render), as for the
-    // shipped model's own vertices (5.22 px above): the correspondence is geometric (aligned
-    // and snapped, see models/data/ict/README.md), not fitted to the detector.
-    assert!(avg < 5.5, "{means:?}");
-    assert!(means.iter().all(|&m| m < 8.0), "{means:?}");
+    // Measured (2026-11-28): 3.45 px on average (3.0 to 3.9 px per render; the shipped
+    // model's own vertices: 5.22 px above). The correspondence was refined on frontal renders
+    // of the mean and four identities (models/data/ict/README.md); these renders have other
+    // identities, blendshapes, light and poses. Geometric alone it gave 4.40 px.
+    assert!(avg < 4.5, "{means:?}");
+    assert!(means.iter().all(|&m| m < 6.0), "{means:?}");
 }
