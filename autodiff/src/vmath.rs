@@ -277,7 +277,9 @@ mod tests {
     #[test]
     fn tanh_slice_is_tanh() {
         let small: Vec<f32> = sweep(-0.62, 0.62, 999).collect();
-        let big: Vec<f32> = sweep(0.625, 12.0, 999).chain(sweep(-12.0, -0.625, 999)).collect();
+        let big: Vec<f32> = sweep(0.625, 12.0, 999)
+            .chain(sweep(-12.0, -0.625, 999))
+            .collect();
         let mut mixed: Vec<f32> = sweep(-3.0, 3.0, 999).collect();
         mixed[17] = f32::NAN;
         for x in [small, big, mixed] {
