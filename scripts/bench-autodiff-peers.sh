@@ -44,6 +44,8 @@ for t in (1, 2):
     m = med(t, "chain50", "forward_backward_1e6_f32")
     b = med(t, "chain50", "copy_bound_116x4MB")
     print(f"| chain50, 1e6 f32 | {t} | {p:.1f} | {m:.1f} | {p/m:.2f}x | {b:.1f} | {m/b:.2f} |")
+    f = med(t, "chain50", "fused_forward_backward_1e6_f32")
+    print(f"| chain50 fused (Tape::fused) | {t} | {p:.1f} | {f:.1f} | {p/f:.2f}x | - | - |")
 for t in (1, 2):
     p = peer("torch_3dmm", t, V=35000, K=199)
     m = med(t, "3dmm", "forward_backward_V35000_K199")

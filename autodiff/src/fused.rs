@@ -538,7 +538,13 @@ fn unary_fwd<T: Real>(k: Unary<T>, o: &mut [T], x: &[T]) {
         Unary::Sqrt => ew2(o, x, d, |v, _| v.sqrt()),
         Unary::Sin => ew1_fast(o, at_s(x), T::k_sin, T::k_trig_ok, T::sin),
         Unary::Cos => ew1_fast(o, at_s(x), T::k_cos, T::k_trig_ok, T::cos),
-        Unary::Tanh => ew1_fast(o, at_s(x), T::k_tanh, |v| !v.is_nan(), T::tanh),
+        Unary::Tanh => {
+            if let (Some(of), Some(xf)) = (T::as_f32_mut(o), T::as_f32(at_s(x))) {
+                crate::vmath::tanh_slice(of, xf)
+            } else {
+                ew1_fast(o, at_s(x), T::k_tanh, |v| !v.is_nan(), T::tanh)
+            }
+        }
         Unary::Sigmoid => ew1_fast(o, at_s(x), T::k_sigmoid, |v| (-v.abs()).k_exp_ok(), sigmoid),
         Unary::Relu => ew2(o, x, d, |v, z| if v < z { z } else { v }),
         Unary::Abs => ew2(o, x, d, |v, _| v.abs()),
@@ -985,7 +991,21 @@ impl<T: Real> FusedOp<T> {
                 ($src:expr, $acc:expr, $contrib:expr) => {{
                     let contrib: &[T] = $contrib;
                     check(contrib);
-                    self.accumulate($src, $acc, nd.w, contrib, gbelow, gsb, egrads, eset, red, c);
+                    // The first contribution to an argument of the node's own layout is
+                    // the argument's gradient: `tmp` takes its place (no copy).
+                    match ($src, $acc) {
+                        (Src::Node(i), Access::Full) if !gsb[i] => {
+                            std::mem::swap(&mut gbelow[i], tmp);
+                            gsb[i] = true;
+                        }
+                        (Src::Ext(k), Access::Full) if !eset[k] => {
+                            std::mem::swap(&mut egrads[k], tmp);
+                            eset[k] = true;
+                        }
+                        _ => self.accumulate(
+                            $src, $acc, nd.w, contrib, gbelow, gsb, egrads, eset, red, c,
+                        ),
+                    }
                 }};
             }
             match nd.kind {

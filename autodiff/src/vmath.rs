@@ -1,4 +1,5 @@
 #![allow(clippy::excessive_precision)] // polynomial coefficients as published
+#![allow(clippy::needless_range_loop)] // `&x[..n]` re-slices: no bounds checks, loops vectorise
 //! Branch-free `f32` sin, cos, exp, tanh and sigmoid that the compiler vectorises over slices
 //! (libm's scalar calls dominate elementwise chains otherwise).
 //!
@@ -115,26 +116,78 @@ pub fn exp(x: f32) -> f32 {
     p * f32::from_bits((n.wrapping_add(127) as u32) << 23)
 }
 
-/// tanh x (any x except NaN).
+/// Below this |x|, [`tanh`] uses its odd polynomial ([`tanh_small`]), else [`tanh_big`].
+pub const TANH_SMALL: f32 = 0.625;
+
+/// tanh x for |x| < [`TANH_SMALL`]: odd polynomial (Cephes tanhf).
+#[inline(always)]
+pub fn tanh_small(x: f32) -> f32 {
+    let z = x * x;
+    ((((-5.704_988_7e-3 * z + 2.063_908_9e-2) * z - 5.373_971_6e-2) * z + 1.333_144_2e-1) * z
+        - 3.333_328_2e-1)
+        * z
+        * x
+        + x
+}
+
+/// tanh x for |x| >= [`TANH_SMALL`] (any x except NaN): sign(x) (1 - 2 / (e^{2|x|} + 1)),
+/// exactly 1 in f32 beyond |x| = 10.
+#[inline(always)]
+pub fn tanh_big(x: f32) -> f32 {
+    let e = exp(2.0 * x.abs().min(10.0));
+    let big = 1.0 - 2.0 / (e + 1.0);
+    if x < 0.0 {
+        -big
+    } else {
+        big
+    }
+}
+
+/// tanh x (any x except NaN): [`tanh_small`] or [`tanh_big`], both evaluated and one selected
+/// (branch-free, so that loops over it vectorise).
 #[inline(always)]
 pub fn tanh(x: f32) -> f32 {
-    let ax = x.abs();
-    // Small |x|: odd polynomial (Cephes tanhf).
-    let z = x * x;
-    let small =
-        ((((-5.704_988_7e-3 * z + 2.063_908_9e-2) * z - 5.373_971_6e-2) * z + 1.333_144_2e-1) * z
-            - 3.333_328_2e-1)
-            * z
-            * x
-            + x;
-    // Larger |x|: 1 - 2 / (e^{2|x|} + 1), exactly 1 in f32 beyond |x| = 10.
-    let e = exp(2.0 * ax.min(10.0));
-    let big = 1.0 - 2.0 / (e + 1.0);
-    let big = if x < 0.0 { -big } else { big };
-    if ax < 0.625 {
+    let (small, big) = (tanh_small(x), tanh_big(x));
+    if x.abs() < TANH_SMALL {
         small
     } else {
         big
+    }
+}
+
+/// `o[i] = tanh(x[i])` (bit for bit as [`tanh`], NaN kept): when every |x| lies on one side of
+/// [`TANH_SMALL`] only that side's formula is evaluated (the exp and the division of
+/// [`tanh_big`] are three quarters of [`tanh`]'s work; arguments of one chunk often share a
+/// side); otherwise [`tanh`] per element and libm's for NaN.
+#[inline(always)]
+pub fn tanh_slice(o: &mut [f32], x: &[f32]) {
+    let n = o.len();
+    let x = &x[..n];
+    // Comparisons with NaN are false: a NaN makes both flags false.
+    let (small, big) = x.iter().fold((true, true), |(s, b), &v| {
+        (s & (v.abs() < TANH_SMALL), b & (v.abs() >= TANH_SMALL))
+    });
+    if big {
+        for i in 0..n {
+            o[i] = tanh_big(x[i]);
+        }
+    } else if small {
+        for i in 0..n {
+            o[i] = tanh_small(x[i]);
+        }
+    } else {
+        let mut finite = true;
+        for i in 0..n {
+            o[i] = tanh(x[i]);
+            finite &= !x[i].is_nan();
+        }
+        if !finite {
+            for i in 0..n {
+                if x[i].is_nan() {
+                    o[i] = x[i].tanh();
+                }
+            }
+        }
     }
 }
 
@@ -218,5 +271,27 @@ mod tests {
         assert_eq!(tanh(-100.0), -1.0);
         assert_eq!(exp(0.0), 1.0);
         assert_eq!(sigmoid(0.0), 0.5);
+    }
+
+    /// The one-sided paths of `tanh_slice` give `tanh`'s bits; NaN stays NaN.
+    #[test]
+    fn tanh_slice_is_tanh() {
+        let small: Vec<f32> = sweep(-0.62, 0.62, 999).collect();
+        let big: Vec<f32> = sweep(0.625, 12.0, 999)
+            .chain(sweep(-12.0, -0.625, 999))
+            .collect();
+        let mut mixed: Vec<f32> = sweep(-3.0, 3.0, 999).collect();
+        mixed[17] = f32::NAN;
+        for x in [small, big, mixed] {
+            let mut o = vec![0.0f32; x.len()];
+            tanh_slice(&mut o, &x);
+            for (&o, &x) in o.iter().zip(&x) {
+                if x.is_nan() {
+                    assert!(o.is_nan());
+                } else {
+                    assert_eq!(o.to_bits(), tanh(x).to_bits(), "{x}");
+                }
+            }
+        }
     }
 }

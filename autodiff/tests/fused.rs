@@ -315,6 +315,34 @@ fn chain_is_bit_identical() {
     assert_eq!(go::<f64>(true), go::<f64>(false));
 }
 
+/// `tanh` over chunks whose arguments are all small, all large, mixed, and mixed with a NaN
+/// (the interpreter's one-sided `tanh` paths): the eager values and gradients, bit for bit.
+#[test]
+fn tanh_paths_match_eager() {
+    let mut x0: Tensor<f32> = Rng::new(9).normal_tensor(&[4096]);
+    for (i, v) in x0.iter_mut().enumerate() {
+        *v = match i / 1024 {
+            0 => *v * 0.1,
+            1 => v.signum() * (0.7 + v.abs()),
+            _ => *v,
+        };
+    }
+    x0[[3000]] = f32::NAN;
+    let go = |fused: bool| {
+        let tape = Tape::<f32>::new();
+        tape.set_fused_chunk(1024);
+        let x = tape.leaf(x0.clone());
+        let y = if fused {
+            tape.fused(|| x.tanh())
+        } else {
+            x.tanh()
+        };
+        let g = tape.backward(y.sum()).unwrap();
+        (bits(&y.value().unwrap()), bits(g.get(x).unwrap()))
+    };
+    assert_eq!(go(true), go(false));
+}
+
 /// Same bits with 1, 2 and 3 threads; same bits across chunk sizes except the gradients of
 /// row-invariant inputs (their summation order follows the chunks), which stay within bound.
 #[test]
