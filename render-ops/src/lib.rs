@@ -16,6 +16,7 @@ pub mod error;
 pub mod interpolate;
 pub mod io;
 pub mod mesh;
+pub mod methods;
 pub mod obj;
 pub mod pipeline;
 pub mod raster;

@@ -237,7 +237,8 @@ fn supersampled(
 ) -> Vec<f64> {
     let clip = clip_of(points, &camera());
     let big = n * ss;
-    let fr = render_ops::raster::rasterize(&clip, faces, &RasterSettings::new(big, big)).unwrap();
+    let fr = render_ops::raster::rasterize_fragments(&clip, faces, &RasterSettings::new(big, big))
+        .unwrap();
     let mut img = vec![0.0; n * n * 4];
     let scale = 1.0 / (ss * ss) as f64;
     for row in 0..big {

@@ -148,7 +148,7 @@ pub(crate) fn prepare<'t, T: Real>(
     }
     let cv = clip.value()?;
     let rows = clip_rows(&cv)?;
-    let frags = crate::raster::rasterize(&rows, faces, &s.raster())?;
+    let frags = crate::raster::rasterize_fragments(&rows, faces, &s.raster())?;
     let bg = (0..c)
         .map(|ch| T::from_f64c(s.background.get(ch).copied().unwrap_or(0.0)))
         .collect();
