@@ -384,16 +384,14 @@ fn merge(a: Mesh<f64>, b: Mesh<f64>) -> Mesh<f64> {
 impl BenchScene {
     /// Builds a built-in scene (all fit in the unit ball about the origin).
     pub fn build(kind: SceneKind) -> Self {
-        if kind == SceneKind::TexturedLit {
-            let (mesh, texture) = textured_sphere();
-            return BenchScene {
-                name: kind.name(),
-                moving: (0..mesh.positions.len()).collect(),
-                mesh,
-                texture: Some(texture),
-            };
-        }
+        let mut texture = None;
         let (mesh, moving) = match kind {
+            SceneKind::TexturedLit => {
+                let (m, tex) = textured_sphere();
+                texture = Some(tex);
+                let all = (0..m.positions.len()).collect();
+                (m, all)
+            }
             SceneKind::Ico(s) => {
                 let m = colored_sphere(s, 1.0, [0.0; 3], [1.0; 3]);
                 let all = (0..m.positions.len()).collect();
@@ -467,7 +465,7 @@ impl BenchScene {
             name: kind.name(),
             mesh,
             moving,
-            texture: None,
+            texture,
         }
     }
 

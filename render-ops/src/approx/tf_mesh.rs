@@ -54,6 +54,24 @@
 //! Deterministic: the interior part is [`crate::raster::rasterize_backward`] (fixed-order
 //! reduction); the band contributions are computed per image row in parallel and summed in
 //! pixel order.
+//!
+//! # Composed form: extrapolated barycentrics through rasterize / interpolate
+//!
+//! [`tf_mesh()`] is the fast path over per-vertex attributes. For any shader (textures,
+//! per-pixel lighting, a user's closure) [`rasterize_extrapolated`] gives, besides the hard
+//! rasterization, the band as a second rasterization: one fragment per band pixel, on a
+//! background pixel the covered neighbour's face with the extrapolated barycentrics `b~(p)`,
+//! depth and view depth of the face's plane there, on a covered pixel its own fragment; its
+//! barycentrics and depths are tape variables differentiable with respect to the clip
+//! positions (the backward of the rasterizer, which recomputes them at the pixel centre
+//! without clamping), and its coverage `alpha = 1/2 - s` is a third. The shader runs on both
+//! rasterizations unchanged (interpolate, texture, shade), giving the hard colours and
+//! `F` per band pixel, and [`blend_band`] composites `blend_hard` of the hard colours plus
+//! `(alpha - alpha0) (F - B)` with `alpha0` alpha's value held constant: the hard image in
+//! the forward, the band term `(F - B) dalpha` in the backward. On per-vertex colours it gives
+//! the fused op's image bit for bit and its gradients to rounding, except at covered pixels
+//! whose closest point on the silhouette edge lies past the edge's end (the fused op clamps
+//! the edge parameter there, the composed coverage differentiates the line distance exactly).
 
 use std::sync::Arc;
 
