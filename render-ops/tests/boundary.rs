@@ -821,7 +821,7 @@ fn gradcheck_tf_mesh_extrapolated_raster() {
                         _ => (r.coverage * wd).sum(),
                     }
                 },
-                &[clip.clone()],
+                std::slice::from_ref(&clip),
                 &GradcheckOptions {
                     eps: 1e-7,
                     atol: 1e-6,
@@ -894,9 +894,8 @@ fn composed_tf_mesh<'t, T: Real>(
 }
 
 /// `f32` against `f64` for the composed `tf_mesh` (icosphere(2), 40 x 40): image and the
-/// gradients with respect to clip positions and colours (measured 5.9e-7, 6.6e-7 and 4.6e-7;
-/// asserted 1e-5
-/// relative to the largest value).
+/// gradients with respect to clip positions and colours (measured 5.9e-7, 6.6e-7 and 4.6e-7
+/// relative to the largest value; asserted 1e-5).
 #[test]
 fn composed_tf_mesh_f32_matches_f64() {
     let (clip, faces, pts) = ico(2);
