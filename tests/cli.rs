@@ -371,7 +371,7 @@ fn bad_files_and_oversized_requests_give_one_line_errors() {
         ),
         "sigmaa",
     );
-    // tf_mesh takes per-vertex colours: it cannot sample a texture.
+    // softras takes per-vertex colours: it cannot sample a texture.
     tapestry::render_ops::io::write_png(
         dir.join("t.png"),
         &tapestry::autodiff::ndarray::Array3::<f64>::from_elem((2, 2, 3), 0.5),
@@ -382,9 +382,9 @@ fn bad_files_and_oversized_requests_give_one_line_errors() {
             "f.json",
             r#"tri.obj", "texture": "t.png"#,
             small,
-            r#"{"method": "tf_mesh"}"#,
+            r#"{"method": "softras"}"#,
         ),
-        "raster.method 'tf_mesh' takes per-vertex colours",
+        "raster.method 'softras' takes per-vertex colours",
     );
     // Too large for memory: refused before allocating (a 4096^2 image at 16 faces per pixel is
     // 268M fragment slots; 65536^2 pixels is past the packed layout's pixel limit).

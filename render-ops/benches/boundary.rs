@@ -1,6 +1,7 @@
 //! Per-vertex colours through the fused ops of `render_ops::approx` against the composed path
 //! of `render_ops::boundary` (rasterize + interpolate + blend_hard + the boundary op, which any
-//! shader can feed), forward + backward of `sum (I - 0.25)^2` over RGBA to positions and
+//! shader can feed; for `tf_mesh`: rasterize_extrapolated + interpolate on the hard and band
+//! fragments + blend_band), forward + backward of `sum (I - 0.25)^2` over RGBA to positions and
 //! colours, f32, on the peers' ico5k sphere at 256 x 256 (back-face culling), 1 and 2 threads.
 //! `Scene::render` keeps the fused ops for unlit, untextured scenes; this bench measures what
 //! the composed path costs there.
@@ -50,14 +51,18 @@ fn bench_fused_vs_composed(c: &mut Criterion) {
     let rs = s.raster();
     for threads in [1, 2] {
         let pool = pool(threads);
-        for method in ["opendr", "nmr", "deodr"] {
+        for method in ["tf_mesh", "opendr", "nmr", "deodr"] {
             for composed in [false, true] {
                 let run = || {
                     let tape = Tape::<f32>::new();
                     let p = tape.var(pos.clone(), true);
                     let cv = tape.var(col.clone(), true);
                     let clip = to_clip(p, &m);
-                    let img = if composed {
+                    let img = if composed && method == "tf_mesh" {
+                        let r = approx::tf_mesh::rasterize_extrapolated(clip, faces.clone(), &rs)?;
+                        let (col, band) = (interpolate(cv, &r.raster)?, interpolate(cv, &r.band)?);
+                        approx::tf_mesh::blend_band(col, band, &r, &[0.0; 3])?
+                    } else if composed {
                         let r = rasterize(clip, faces.clone(), &rs)?;
                         let shaded = blend_hard(interpolate(cv, &r)?, &r.fragments, &[0.0; 3])?;
                         match method {
@@ -67,6 +72,7 @@ fn bench_fused_vs_composed(c: &mut Criterion) {
                         }
                     } else {
                         match method {
+                            "tf_mesh" => approx::tf_mesh(clip, cv, faces.clone(), &s)?,
                             "opendr" => approx::opendr(clip, cv, faces.clone(), &s)?,
                             "nmr" => approx::nmr(clip, cv, faces.clone(), &s)?,
                             _ => approx::deodr(clip, cv, faces.clone(), &s)?,

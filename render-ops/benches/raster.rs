@@ -22,7 +22,7 @@ use autodiff::Tape;
 use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use render_ops::mesh::Mesh;
-use render_ops::raster::{rasterize, rasterize_backward, RasterSettings};
+use render_ops::raster::{rasterize_backward, rasterize_fragments, RasterSettings};
 use render_ops::rasterize::render_attributes;
 use render_ops::transform::to_clip;
 
@@ -68,7 +68,7 @@ fn bench_forward(c: &mut Criterion) {
                     if cull { "/cull" } else { "" }
                 );
                 g.bench_function(BenchmarkId::from_parameter(id), |b| {
-                    b.iter(|| frame_in(&pool, || rasterize(&clip, &faces, &s).unwrap()))
+                    b.iter(|| frame_in(&pool, || rasterize_fragments(&clip, &faces, &s).unwrap()))
                 });
             }
         }
@@ -81,7 +81,7 @@ fn bench_backward(c: &mut Criterion) {
     for subdiv in [4, 6] {
         let (clip, faces) = scene(subdiv);
         let s = RasterSettings::new(512, 512);
-        let fr = rasterize(&clip, &faces, &s).unwrap();
+        let fr = rasterize_fragments(&clip, &faces, &s).unwrap();
         let gb = vec![[1.0f32, -0.5, 0.25]; fr.len()];
         let gd = vec![1.0f32; fr.len()];
         let pool = pool(2);

@@ -439,6 +439,72 @@ impl<T: Real> Mesh<T> {
         })
     }
 
+    /// A latitude-longitude sphere of `radius` about the origin with `stacks` rings of faces
+    /// from pole to pole (y up) and `slices` around, counter-clockwise seen from outside, with
+    /// uvs (`u` around from the +z axis, `v` from 1 at the north pole to 0 at the south)
+    /// indexed by `uv_faces`: the seam at `u = 0 / 1` and the poles hold several uvs per
+    /// position ([`Mesh::unified`] splits them). No normals or colours.
+    pub fn uv_sphere(stacks: usize, slices: usize, radius: T) -> Self {
+        use std::f64::consts::{PI, TAU};
+        let (stacks, slices) = (stacks.max(2), slices.max(3));
+        let r = radius.to_f64c();
+        let mut positions = vec![[T::zero(), radius, T::zero()]];
+        for i in 1..stacks {
+            let th = PI * i as f64 / stacks as f64;
+            for j in 0..slices {
+                let ph = TAU * j as f64 / slices as f64;
+                positions.push(
+                    [th.sin() * ph.sin(), th.cos(), th.sin() * ph.cos()]
+                        .map(|x| T::from_f64c(r * x)),
+                );
+            }
+        }
+        positions.push([T::zero(), -radius, T::zero()]);
+        let last = positions.len() as u32 - 1;
+        let pid = |i: usize, j: usize| -> u32 {
+            match i {
+                0 => 0,
+                i if i == stacks => last,
+                i => (1 + (i - 1) * slices + j % slices) as u32,
+            }
+        };
+        let mut uvs = Vec::with_capacity((stacks + 1) * (slices + 1));
+        for i in 0..=stacks {
+            for j in 0..=slices {
+                uvs.push([
+                    T::from_f64c(j as f64 / slices as f64),
+                    T::from_f64c(1.0 - i as f64 / stacks as f64),
+                ]);
+            }
+        }
+        let tid = |i: usize, j: usize| (i * (slices + 1) + j) as u32;
+        let (mut faces, mut uv_faces) = (Vec::new(), Vec::new());
+        for i in 0..stacks {
+            for j in 0..slices {
+                for q in [
+                    [(i, j), (i + 1, j), (i + 1, j + 1)],
+                    [(i, j), (i + 1, j + 1), (i, j + 1)],
+                ] {
+                    let f = q.map(|(a, b)| pid(a, b));
+                    if f[0] == f[1] || f[1] == f[2] || f[0] == f[2] {
+                        continue;
+                    }
+                    faces.push(f);
+                    uv_faces.push(q.map(|(a, b)| tid(a, b)));
+                }
+            }
+        }
+        Mesh {
+            positions,
+            faces,
+            uvs,
+            uv_faces,
+            normals: Vec::new(),
+            normal_faces: Vec::new(),
+            colors: Vec::new(),
+        }
+    }
+
     /// A subdivided icosahedron on the sphere of `radius` about the origin, counter-clockwise
     /// seen from outside: `10 * 4^s + 2` vertices and `20 * 4^s` faces (s = 4: 2562 / 5120,
     /// s = 6: 40962 / 81920). No uvs, normals or colours.

@@ -7,16 +7,12 @@ use std::sync::Arc;
 use autodiff::{Real, Tape, Var};
 use ndarray::{ArrayD, IxDyn};
 
-use crate::approx::{deodr, nmr, opendr, tf_mesh, ApproxSettings};
-use crate::blend::blend_hard;
-use crate::boundary::{self, BoundarySettings};
 use crate::error::RenderError;
+use crate::methods::{render_fragments, render_vertex_colors, MethodSettings, ViewSettings};
 use crate::raster::RasterSettings;
-use crate::rasterize::{rasterize, render_attributes, Rasterized};
-use crate::scene::{Method, Scene};
+use crate::scene::Scene;
 use crate::shade::stage::{texture_rgb, SceneShading, SCENE_SAMPLER};
 use crate::shade::{fragment_inputs, vertex_normals, MeshAttributes};
-use crate::soft::{dibr, softras, DibrSettings, SoftSettings};
 use crate::texture::Texture;
 use crate::transform::to_clip;
 
@@ -58,17 +54,7 @@ impl<T: Real> Scene<T> {
     /// Raster settings of the scene (size, faces per pixel, culling, interpolation mode;
     /// barycentric derivatives for textured scenes).
     pub fn raster_settings(&self) -> RasterSettings {
-        let r = &self.desc.raster;
-        let mut s = RasterSettings::new(
-            self.desc.image.width as usize,
-            self.desc.image.height as usize,
-        );
-        s.faces_per_pixel = r.effective_faces_per_pixel().unwrap_or(1) as usize;
-        s.cull_backfaces = r.cull_backfaces;
-        s.perspective_correct = r.perspective_correct;
-        // Only texturing reads the screen-space uv derivatives.
-        s.barycentric_derivatives = self.texture.is_some();
-        s
+        self.method_settings().raster()
     }
 
     /// Background colour of the image.
@@ -136,19 +122,37 @@ impl<T: Real> Scene<T> {
         }
     }
 
+    /// The scene's method settings for the registry ([`crate::methods`]): the `raster` block,
+    /// the image's size and background, the camera's clip planes; barycentric derivatives for
+    /// textured scenes.
+    pub fn method_settings(&self) -> MethodSettings {
+        let proj = self.camera.projection();
+        let view = ViewSettings {
+            background: self.desc.image.background.to_vec(),
+            ..ViewSettings::new(
+                self.desc.image.width as usize,
+                self.desc.image.height as usize,
+            )
+        };
+        MethodSettings {
+            // Only texturing reads the screen-space uv derivatives.
+            barycentric_derivatives: self.texture.is_some(),
+            ..MethodSettings::from_raster(&self.desc.raster, view, proj.near(), proj.far())
+        }
+    }
+
     /// Renders the scene: an RGBA image [H, W, 4] (RGB composited over the background, alpha =
-    /// coverage) as a tape variable.
+    /// coverage) as a tape variable, through the method registry ([`crate::methods`]).
     ///
-    /// Methods `opendr`, `nmr` and `deodr` over unlit, untextured scenes use the fused ops of
-    /// [`crate::approx`] over the vertex colours (the image of method `hard` with approximate
-    /// boundary gradients, or for `deodr` that image's silhouette edges overdrawn with a ramp
-    /// `overdraw_px` wide, differentiated exactly). Lit or textured scenes are shaded per
-    /// fragment as by method `hard` and then go through the method's op of
-    /// [`crate::boundary`] over the shaded image. `tf_mesh` renders per-vertex colours only
-    /// (lighting evaluated at the vertices, see [`Scene::vertex_colors`]). Every method of
-    /// [`Method::ALL`] is available.
+    /// Unlit, untextured scenes take the fused per-vertex-colour path of the method
+    /// ([`render_vertex_colors`]). Lit or textured scenes are shaded per fragment (texture,
+    /// per-pixel lighting) and composed with the method's visibility stage
+    /// ([`render_fragments`]: the hard blend, `tf_mesh`'s extrapolated silhouette band, the
+    /// boundary ops of [`crate::boundary`], DIB-R's soft alpha). A method without a composed
+    /// path (`softras`, [`crate::methods::MethodInfo::composes`]) renders the scene's lighting
+    /// evaluated at the vertices ([`Scene::vertex_colors`]) and refuses textures. Every method
+    /// of [`crate::scene::Method::ALL`] is available.
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
-        let method = self.desc.raster.method;
         // NaN or Inf in an input would otherwise reach the image silently (colours), be
         // skipped (soft methods) or be reported as a clip coordinate: name the input.
         RenderError::check_finite("positions", &*vars.positions.value()?)?;
@@ -177,90 +181,12 @@ impl<T: Real> Scene<T> {
             .positions
             .tape()
             .constant(ArrayD::from_shape_vec(IxDyn(&[3]), kd.to_vec()).expect("3"));
-        if method == Method::SoftRas {
-            let r = &self.desc.raster;
-            let proj = self.camera.projection();
-            let (w, h) = (
-                self.desc.image.width as usize,
-                self.desc.image.height as usize,
-            );
-            let mut s = SoftSettings::new(w, h, proj.near(), proj.far());
-            s.sigma = r.sigma;
-            s.gamma = r.gamma;
-            s.eps = r.eps;
-            s.threshold = r.threshold;
-            s.perspective_correct = r.perspective_correct;
-            s.background = self.desc.image.background.to_vec();
-            return softras(clip, self.vertex_colors(vars, kd)?, faces, &s);
+        let s = self.method_settings();
+        let per_vertex = !self.shading(vars).is_lit() && vars.texture.is_none();
+        if per_vertex || !s.method.info().composes {
+            return render_vertex_colors(clip, self.vertex_colors(vars, kd)?, faces, &s);
         }
-        if method == Method::Dibr {
-            // DIB-R: the hard render's RGB (shaded per fragment, textured) with the soft
-            // silhouette as alpha (render_ops::soft::dibr).
-            let r = &self.desc.raster;
-            let mut s = DibrSettings::new(
-                self.desc.image.width as usize,
-                self.desc.image.height as usize,
-            );
-            s.delta = r.delta;
-            s.threshold = r.threshold;
-            s.cull_backfaces = r.cull_backfaces;
-            let alpha = dibr::dibr_alpha(clip, faces, &s)?;
-            return dibr::composite(self.render_hard(vars, clip, kd)?, alpha);
-        }
-        if matches!(
-            method,
-            Method::TfMesh | Method::OpenDr | Method::Nmr | Method::Deodr
-        ) {
-            let r = &self.desc.raster;
-            let lit = SceneShading::new(
-                vars.positions.tape(),
-                &self.desc.material,
-                &self.desc.lights,
-            )
-            .is_lit();
-            if method != Method::TfMesh && (lit || vars.texture.is_some()) {
-                // Shaded per fragment as by method `hard` (texture, per-pixel lighting), then
-                // the method's boundary op over the shaded image (render_ops::boundary).
-                let shaded = self.shade_fragments(vars, clip, kd)?;
-                let Some((raster, rclip)) = shaded.raster else {
-                    return Err(RenderError::Unsupported(
-                        "a lit or textured scene is shaded after rasterization".into(),
-                    ));
-                };
-                return match method {
-                    Method::OpenDr => boundary::opendr(shaded.image, &raster, rclip),
-                    Method::Nmr => boundary::nmr(shaded.image, &raster, rclip),
-                    _ => boundary::deodr(
-                        shaded.image,
-                        &raster,
-                        rclip,
-                        &BoundarySettings {
-                            overdraw_px: r.overdraw_px,
-                        },
-                    ),
-                };
-            }
-            // The fast path: the hard forward over per-vertex colours with approximate boundary
-            // gradients, or DEODR's edge overdraw and its exact gradient, fused
-            // (render_ops::approx); for tf_mesh also over Gouraud-shaded colours. Textures are
-            // rejected by vertex_colors.
-            let mut s = ApproxSettings::new(
-                self.desc.image.width as usize,
-                self.desc.image.height as usize,
-            );
-            s.perspective_correct = r.perspective_correct;
-            s.cull_backfaces = r.cull_backfaces;
-            s.background = self.desc.image.background.to_vec();
-            s.overdraw_px = r.overdraw_px;
-            let colors = self.vertex_colors(vars, kd)?;
-            return match method {
-                Method::TfMesh => tf_mesh(clip, colors, faces, &s),
-                Method::OpenDr => opendr(clip, colors, faces, &s),
-                Method::Nmr => nmr(clip, colors, faces, &s),
-                _ => deodr(clip, colors, faces, &s),
-            };
-        }
-        self.render_hard(vars, clip, kd)
+        self.render_shaded(vars, clip, kd, &s)
     }
 }
 
@@ -323,8 +249,8 @@ impl<T: Real> Scene<T> {
         if vars.texture.is_some() {
             return Err(RenderError::Unsupported(format!(
                 "textures are sampled per fragment: raster.method '{}' takes per-vertex \
-                 colours; use method 'hard', 'opendr', 'nmr', 'deodr' or 'dibr' for textured \
-                 scenes",
+                 colours; use method 'hard', 'tf_mesh', 'opendr', 'nmr', 'deodr' or 'dibr' for \
+                 textured scenes",
                 self.desc.raster.method.name()
             )));
         }
@@ -338,58 +264,34 @@ impl<T: Real> Scene<T> {
         shading.apply(vars.positions, normals, albedo, self.eye(vars))
     }
 
-    /// The hard method: rasterize `clip` (`[V, 4]`, of `vars.positions`), then per fragment
-    /// interpolate, texture, shade (Phong shading: lighting per fragment with interpolated
-    /// area-weighted vertex normals), and composite with the z-buffer blend.
+    /// Per-fragment shading composed with the method of `s` ([`render_fragments`]): per
+    /// fragment interpolate, texture, shade (Phong shading: lighting per fragment with
+    /// interpolated area-weighted vertex normals).
     ///
     /// A textured scene splits the mesh at uv seams ([`crate::mesh::Mesh::unified`]): the
     /// split vertices gather the clip coordinates, colours and normals of their source
     /// vertices, so gradients sum back onto `vars.positions` / `vars.colors`. The texture is
     /// sampled with [`SCENE_SAMPLER`] (bilinear, repeat).
-    fn render_hard<'t>(
+    fn render_shaded<'t>(
         &self,
         vars: &SceneVars<'t, T>,
         clip: Var<'t, T>,
         kd: Var<'t, T>,
+        s: &MethodSettings,
     ) -> Result<Var<'t, T>, RenderError> {
-        Ok(self.shade_fragments(vars, clip, kd)?.image)
-    }
-
-    /// The image of [`Scene::render_hard`], with the rasterization it was drawn from and the
-    /// clip positions of the vertices it rasterized (those of the uv-split mesh for a textured
-    /// scene); no rasterization for unlit, untextured scenes drawn by
-    /// [`render_attributes`].
-    fn shade_fragments<'t>(
-        &self,
-        vars: &SceneVars<'t, T>,
-        clip: Var<'t, T>,
-        kd: Var<'t, T>,
-    ) -> Result<Shaded<'t, T>, RenderError> {
         let t = vars.positions.tape();
         let shading = self.shading(vars);
-        let settings = self.raster_settings();
-        let bg = self.background();
+        let eye = self.eye(vars);
+        let faces = Arc::new(self.mesh.faces.clone());
+        let normals = vertex_normals(vars.positions, &faces);
         let Some(texels) = vars.texture else {
-            let faces = Arc::new(self.mesh.faces.clone());
-            if !shading.is_lit() {
-                // Vertex colours: in one pass when no gradient is asked for.
-                let image = render_attributes(clip, vars.colors * kd, faces, &settings, &bg)?;
-                return Ok(Shaded {
-                    image,
-                    raster: None,
-                });
-            }
-            let r = rasterize(clip, faces.clone(), &settings)?;
             let mesh = MeshAttributes::new(vars.positions)
-                .with_normals(vertex_normals(vars.positions, &faces))
+                .with_normals(normals)
                 .with_attribute("color", vars.colors);
-            let f = fragment_inputs(&r, &mesh, self.eye(vars))?;
-            let albedo = f.attribute("color").expect("set above") * kd;
-            let color = shading.apply(f.position, f.normal, albedo, f.eye)?;
-            let image = blend_hard(color, &r.fragments, &bg)?;
-            return Ok(Shaded {
-                image,
-                raster: Some((r, clip)),
+            return render_fragments(clip, faces, s, &mut |r| {
+                let f = fragment_inputs(r, &mesh, eye)?;
+                let albedo = f.attribute("color").expect("set above") * kd;
+                shading.apply(f.position, f.normal, albedo, f.eye)
             });
         };
         if !self.mesh.has_uvs() {
@@ -400,34 +302,23 @@ impl<T: Real> Scene<T> {
         }
         let unified = self.mesh.unified()?;
         let index: Vec<usize> = unified.position_index.iter().map(|&i| i as usize).collect();
-        let faces = Arc::new(unified.mesh.faces.clone());
+        let ufaces = Arc::new(unified.mesh.faces.clone());
         let uvs = ArrayD::from_shape_vec(
             IxDyn(&[unified.mesh.uvs.len(), 2]),
             unified.mesh.uvs.iter().flatten().copied().collect(),
         )
         .expect("v x 2");
         let rclip = clip.index_select(0, &index);
-        let r = rasterize(rclip, faces, &settings)?;
-        let normals = vertex_normals(vars.positions, &Arc::new(self.mesh.faces.clone()));
         let mesh = MeshAttributes::new(vars.positions.index_select(0, &index))
             .with_normals(normals.index_select(0, &index))
             .with_uvs(t.constant(uvs))
             .with_attribute("color", vars.colors.index_select(0, &index));
-        let f = fragment_inputs(&r, &mesh, self.eye(vars))?;
-        let tex = texture_rgb(f.sample(&Texture::new(texels, SCENE_SAMPLER)))?;
-        let albedo = f.attribute("color").expect("set above") * kd * tex;
-        let color = shading.apply(f.position, f.normal, albedo, f.eye)?;
-        let image = blend_hard(color, &r.fragments, &bg)?;
-        Ok(Shaded {
-            image,
-            raster: Some((r, rclip)),
+        let texture = Texture::new(texels, SCENE_SAMPLER);
+        render_fragments(rclip, ufaces, s, &mut |r| {
+            let f = fragment_inputs(r, &mesh, eye)?;
+            let tex = texture_rgb(f.sample(&texture))?;
+            let albedo = f.attribute("color").expect("set above") * kd * tex;
+            shading.apply(f.position, f.normal, albedo, f.eye)
         })
     }
-}
-
-/// A hard render shaded per fragment: the image `[H, W, 4]`, and when drawn through
-/// [`rasterize`], the rasterization and the clip positions `[V, 4]` it was drawn from.
-struct Shaded<'t, T: Real> {
-    image: Var<'t, T>,
-    raster: Option<(Rasterized<'t, T>, Var<'t, T>)>,
 }

@@ -153,7 +153,7 @@ pub(crate) fn as_arrays_mut<T, const N: usize>(s: &mut [T]) -> &mut [[T; N]] {
 /// given, then ignored: only the nearest fragment is drawn).
 ///
 /// When neither `clip` nor `attrs` requires gradients the image is made in one pass without a
-/// fragment list ([`crate::raster::render_attributes`]), the same image bit for bit and a
+/// fragment list ([`crate::raster::render_attributes_direct`]), the same image bit for bit and a
 /// constant on the tape; otherwise through the three ops, whose backward gives the interior
 /// gradients of the `hard` method.
 ///
@@ -199,7 +199,7 @@ pub fn render_attributes<'t, T: Real>(
     let rows = clip_rows(&cv)?;
     let av = attrs.value()?;
     let a = av.as_standard_layout();
-    let img = crate::raster::render_attributes(
+    let img = crate::raster::render_attributes_direct(
         &rows,
         &faces,
         a.as_slice().expect("standard layout"),
@@ -221,18 +221,32 @@ pub fn rasterize<'t, T: Real>(
 ) -> Result<Rasterized<'t, T>, RenderError> {
     let cv = clip.value()?;
     let rows = clip_rows(&cv)?;
-    let fragments = Arc::new(crate::raster::rasterize(&rows, &faces, settings)?);
+    let fragments = Arc::new(crate::raster::rasterize_fragments(&rows, &faces, settings)?);
+    Ok(record(clip, fragments, faces, settings))
+}
+
+/// Records `fragments` of `faces` (computed by the caller from `clip`, each fragment's
+/// barycentrics and depths those of its pixel centre) as the outputs of a rasterize op: their
+/// backward is [`crate::raster::rasterize_backward`], which recomputes the barycentrics at the
+/// pixel centre whether or not it lies inside the face (extrapolated barycentrics, as
+/// `tf_mesh`'s silhouette band uses).
+pub(crate) fn record<'t, T: Real>(
+    clip: Var<'t, T>,
+    fragments: Arc<Fragments<T>>,
+    faces: Arc<Vec<[u32; 3]>>,
+    settings: &RasterSettings,
+) -> Rasterized<'t, T> {
     let op = RasterizeOp {
         fragments: fragments.clone(),
         faces: faces.clone(),
         settings: *settings,
     };
     let outs = clip.tape().apply_multi(op, &[clip], 3);
-    Ok(Rasterized {
+    Rasterized {
         fragments,
         faces,
         bary: outs[0],
         depth: outs[1],
         view_depth: outs[2],
-    })
+    }
 }

@@ -237,7 +237,8 @@ fn supersampled(
 ) -> Vec<f64> {
     let clip = clip_of(points, &camera());
     let big = n * ss;
-    let fr = render_ops::raster::rasterize(&clip, faces, &RasterSettings::new(big, big)).unwrap();
+    let fr = render_ops::raster::rasterize_fragments(&clip, faces, &RasterSettings::new(big, big))
+        .unwrap();
     let mut img = vec![0.0; n * n * 4];
     let scale = 1.0 / (ss * ss) as f64;
     for row in 0..big {
@@ -811,16 +812,16 @@ fn scene_methods_match_hard() {
             assert!(g.wrt(x).iter().any(|v| v.abs() > 1e-6), "{method}");
         }
     }
-    // A texture needs per-fragment uvs: rejected by tf_mesh, which takes per-vertex colours;
-    // opendr, nmr and deodr shade per fragment and apply their boundary op
-    // (render_ops::boundary, tested in boundary.rs). The mesh has no uvs: its error.
+    // A texture needs per-fragment uvs: rejected by softras, which takes per-vertex colours;
+    // tf_mesh (its extrapolated rasterization), opendr, nmr and deodr shade per fragment
+    // (tested in boundary.rs). The mesh has no uvs: its error.
     let texel = ndarray::Array3::<f64>::from_elem((2, 2, 3), 0.5);
     render_ops::io::write_png(dir.join("t.png"), &texel).unwrap();
-    let sc = load("tf_mesh", r#""texture": "t.png","#);
+    let sc = load("softras", r#""texture": "t.png","#);
     let e = sc.render(&sc.vars(&tape, Wrt::default())).unwrap_err();
-    assert!(matches!(e, RenderError::Unsupported(_)), "tf_mesh: {e}");
-    assert!(e.to_string().contains("tf_mesh"), "{e}");
-    for method in ["opendr", "nmr", "deodr"] {
+    assert!(matches!(e, RenderError::Unsupported(_)), "softras: {e}");
+    assert!(e.to_string().contains("softras"), "{e}");
+    for method in ["tf_mesh", "opendr", "nmr", "deodr"] {
         let sc = load(method, r#""texture": "t.png","#);
         let e = sc.render(&sc.vars(&tape, Wrt::default())).unwrap_err();
         assert!(e.to_string().contains("no uvs"), "{method}: {e}");

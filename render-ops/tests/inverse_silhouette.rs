@@ -14,7 +14,7 @@ use autodiff::{Tape, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
 use render_ops::camera::Camera;
 use render_ops::mesh::Mesh;
-use render_ops::raster::{rasterize, RasterSettings};
+use render_ops::raster::{rasterize_fragments, RasterSettings};
 use render_ops::soft::{softras, SoftSettings};
 use render_ops::transform::to_clip;
 
@@ -69,7 +69,7 @@ fn clip_rows(points: &[[f64; 3]], m: &[[f64; 4]; 4]) -> Vec<[f64; 4]> {
 
 /// Hard coverage mask of a mesh under one camera.
 fn silhouette(points: &[[f64; 3]], faces: &[[u32; 3]], cam: &Camera) -> Vec<bool> {
-    let frags = rasterize(
+    let frags = rasterize_fragments(
         &clip_rows(points, &cam.view_proj()),
         faces,
         &RasterSettings::new(SIZE, SIZE),

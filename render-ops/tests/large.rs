@@ -11,7 +11,7 @@ use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
 use render_ops::blend::blend_hard;
 use render_ops::interpolate::interpolate;
-use render_ops::raster::{rasterize as raster_raw, RasterSettings};
+use render_ops::raster::{rasterize_fragments as raster_raw, RasterSettings};
 use render_ops::rasterize::rasterize;
 
 /// Peak resident set size of this process so far, in MiB (VmHWM), where /proc has it.

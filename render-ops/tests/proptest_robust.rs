@@ -165,7 +165,7 @@ proptest! {
             ..RasterSettings::new(s.width, s.height)
         };
         // The raw rasterizer: non-finite vertices are the one error these inputs can give.
-        match render_ops::raster::rasterize(&s.clip, &s.faces, &settings) {
+        match render_ops::raster::rasterize_fragments(&s.clip, &s.faces, &settings) {
             Ok(fr) => {
                 prop_assert!(s.finite());
                 prop_assert!(fr.bary.iter().flatten().all(|x| x.is_finite()));

@@ -46,7 +46,7 @@ use render_ops::error::RenderError;
 use render_ops::mesh::Mesh;
 use render_ops::pipeline::Wrt;
 use render_ops::scene::{
-    CameraDesc, ImageDesc, Material, Method, Raster, Scene, SceneDesc, SceneError,
+    CameraDesc, ImageDesc, Light, Material, Method, Raster, Scene, SceneDesc, SceneError, Shading,
     DEFAULT_DIBR_DELTA,
 };
 use serde::Serialize;
@@ -104,6 +104,10 @@ pub enum SceneKind {
     Face,
     /// Two spheres, the front one (which the pose moves) partly hiding the back one.
     Occlusion,
+    /// A latitude-longitude sphere (24 x 48, 2208 faces) with a procedural texture, lit per
+    /// pixel (Phong: a directional, a point and an ambient light): every method through its
+    /// composed (per-fragment) path, where it has one.
+    TexturedLit,
 }
 
 impl SceneKind {
@@ -114,6 +118,7 @@ impl SceneKind {
             SceneKind::Cube => "cube".into(),
             SceneKind::Face => "face".into(),
             SceneKind::Occlusion => "occlusion".into(),
+            SceneKind::TexturedLit => "textured-lit".into(),
         }
     }
 }
@@ -159,6 +164,7 @@ impl BenchConfig {
                 SceneKind::Cube,
                 SceneKind::Face,
                 SceneKind::Occlusion,
+                SceneKind::TexturedLit,
             ],
             reps: 3,
             fit_scenes: vec![SceneKind::Ico(4), SceneKind::Cube, SceneKind::Occlusion],
@@ -183,6 +189,7 @@ impl BenchConfig {
                 SceneKind::Cube,
                 SceneKind::Face,
                 SceneKind::Occlusion,
+                SceneKind::TexturedLit,
             ],
             reps: 5,
             fit_scenes: vec![
@@ -206,7 +213,11 @@ impl BenchConfig {
             name: "tiny",
             size: 24,
             samples: 4,
-            scenes: vec![SceneKind::Ico(2), SceneKind::Occlusion],
+            scenes: vec![
+                SceneKind::Ico(2),
+                SceneKind::Occlusion,
+                SceneKind::TexturedLit,
+            ],
             reps: 1,
             fit_scenes: vec![SceneKind::Ico(2)],
             fit_cap: 10,
@@ -313,7 +324,8 @@ pub fn method_configs() -> Vec<MethodConfig> {
     out
 }
 
-/// A built-in scene: mesh with vertex colours (shading none), which vertices the pose moves.
+/// A built-in scene: mesh with vertex colours (shading none), or a textured, Phong-lit one;
+/// which vertices the pose moves.
 #[derive(Clone, Debug)]
 pub struct BenchScene {
     /// Name in the table.
@@ -322,6 +334,25 @@ pub struct BenchScene {
     pub mesh: Mesh<f64>,
     /// Vertices moved by the pose.
     pub moving: Vec<usize>,
+    /// The texture `[H, W, 3]` of a textured scene (the mesh has uvs).
+    pub texture: Option<Array3<f64>>,
+}
+
+/// The textured, lit scene's mesh (white vertex colours) and texture: stripes and a smooth
+/// checker of low frequency, 64 x 128 texels on the 8-bit grid.
+fn textured_sphere() -> (Mesh<f64>, Array3<f64>) {
+    let mut m = Mesh::<f64>::uv_sphere(24, 48, 1.0);
+    m.colors = vec![[1.0; 3]; m.positions.len()];
+    let (h, w) = (64, 128);
+    let tex = Array3::from_shape_fn((h, w, 3), |(r, c, ch)| {
+        let (u, v) = (c as f64 / w as f64, r as f64 / h as f64);
+        let x = 0.55
+            + 0.35
+                * (std::f64::consts::TAU * (4.0 * u + ch as f64 * 0.3)).sin()
+                * (std::f64::consts::PI * (5.0 * v)).cos();
+        (x * 255.0).round() / 255.0
+    });
+    (m, tex)
 }
 
 fn colored_sphere(level: u32, radius: f64, offset: [f64; 3], tint: [f64; 3]) -> Mesh<f64> {
@@ -353,7 +384,14 @@ fn merge(a: Mesh<f64>, b: Mesh<f64>) -> Mesh<f64> {
 impl BenchScene {
     /// Builds a built-in scene (all fit in the unit ball about the origin).
     pub fn build(kind: SceneKind) -> Self {
+        let mut texture = None;
         let (mesh, moving) = match kind {
+            SceneKind::TexturedLit => {
+                let (m, tex) = textured_sphere();
+                texture = Some(tex);
+                let all = (0..m.positions.len()).collect();
+                (m, all)
+            }
             SceneKind::Ico(s) => {
                 let m = colored_sphere(s, 1.0, [0.0; 3], [1.0; 3]);
                 let all = (0..m.positions.len()).collect();
@@ -427,15 +465,44 @@ impl BenchScene {
             name: kind.name(),
             mesh,
             moving,
+            texture,
         }
     }
 
     /// The scene at `width x height` with the given raster block: camera at (0, 0, 3.5)
-    /// looking at the origin, fov 45 degrees, near 1, far 10, black background, shading none.
+    /// looking at the origin, fov 45 degrees, near 1, far 10, black background, shading none
+    /// (a textured scene: Phong, kd 0.9, ks 0.3, shininess 20, a directional, a point and an
+    /// ambient light).
     pub fn scene(&self, width: usize, height: usize, raster: Raster) -> Result<Scene<f64>> {
+        let (lights, material) = if self.texture.is_some() {
+            let lights = vec![
+                Light::Directional {
+                    direction: [-0.4, -0.5, -1.0],
+                    color: [1.0, 0.95, 0.9],
+                },
+                Light::Point {
+                    position: [2.0, 1.0, 3.0],
+                    color: [0.3, 0.3, 0.35],
+                },
+                Light::Ambient { color: [0.15; 3] },
+            ];
+            let material = Material {
+                shading: Shading::Phong,
+                kd: [0.9; 3],
+                ks: [0.3; 3],
+                shininess: 20.0,
+                ..Material::default()
+            };
+            (lights, material)
+        } else {
+            (Vec::new(), Material::default())
+        };
         let desc = SceneDesc {
             mesh: PathBuf::from(format!("<{}>", self.name)),
-            texture: None,
+            texture: self
+                .texture
+                .as_ref()
+                .map(|_| PathBuf::from(format!("<{} texture>", self.name))),
             camera: CameraDesc {
                 eye: [0.0, 0.0, 3.5],
                 at: [0.0; 3],
@@ -449,8 +516,8 @@ impl BenchScene {
                 height: height as u32,
                 background: [0.0; 3],
             },
-            lights: Vec::new(),
-            material: Material::default(),
+            lights,
+            material,
             raster,
         };
         let file = format!("<bench {}>", self.name);
@@ -464,7 +531,7 @@ impl BenchScene {
             mesh_path: PathBuf::from(format!("<{}>", self.name)),
             texture_path: None,
             mesh: self.mesh.clone(),
-            texture: None,
+            texture: self.texture.clone(),
             camera,
         })
     }
@@ -882,6 +949,17 @@ pub fn run(config: &BenchConfig, progress: &mut dyn FnMut(&str)) -> Result<Repor
         let (reference, target) = reference;
         for cfg in &configs {
             progress(&format!("{}: {}", bench.name, cfg.label()));
+            if bench.texture.is_some() {
+                // Said explicitly: a method without a composed (per-fragment) path cannot
+                // texture or light per pixel, and is not timed on this scene.
+                if let Err(m) = probe(&bench, cfg)? {
+                    let note = format!("{} on {}: not available ({m})", cfg.label(), bench.name);
+                    if !report.notes.contains(&note) {
+                        report.notes.push(note);
+                    }
+                    continue;
+                }
+            }
             let scene = bench.scene(size, size, cfg.raster)?;
             let rec = one.install(|| -> Result<Record> {
                 let timing = time_method(&scene, &pose, &target, config.reps)?;

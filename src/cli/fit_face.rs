@@ -63,7 +63,6 @@ fn parse_method(name: &str) -> Result<Method, CliError> {
             Method::ALL.map(|m| m.name()).join(", ")
         ))
     })?;
-    fit::check_method(m).map_err(|e| CliError::Message(format!("--method: {e}")))?;
     Ok(m)
 }
 

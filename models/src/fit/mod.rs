@@ -48,10 +48,7 @@ use thiserror::Error;
 pub use landmarks::{
     correspondence, read_landmarks, Correspondence, LandmarkFileError, MEDIAPIPE_TO_IBUG68,
 };
-pub use render::{
-    check_method, Active, FaceRenderer, ParamVars, RenderOptions, FAR_MM, NEAR_MM,
-    SUPPORTED_METHODS,
-};
+pub use render::{Active, FaceRenderer, ParamVars, RenderOptions, FAR_MM, NEAR_MM};
 pub use synth::{euler_to_axis_angle, synthesize, SynthOptions, Synthetic};
 
 use crate::morphable::{LandmarkPoint, Morphable};
@@ -62,14 +59,6 @@ pub const SH_Y00: f64 = 0.282095;
 /// Errors of fitting.
 #[derive(Debug, Error)]
 pub enum FitError {
-    /// The raster method is not supported by the face renderer.
-    #[error("raster method '{method}' is not supported by face fitting in this build; supported: {supported}")]
-    UnsupportedMethod {
-        /// The method asked for.
-        method: &'static str,
-        /// The supported methods.
-        supported: String,
-    },
     /// A landmark file that cannot be used.
     #[error(transparent)]
     Landmarks(#[from] LandmarkFileError),

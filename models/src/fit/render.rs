@@ -9,26 +9,25 @@
 //! Shading: per-vertex albedo ([`Morphable::albedo_standardized`], with the constant region
 //! colours of the mouth interior and eye openings from [`Morphable::region_split`]) lit by
 //! order-2 SH ([`render_ops::shade::sh::sh_shade`], CONVENTIONS) with area-weighted vertex
-//! normals of the posed mesh (world = view space). The `hard` method interpolates normals and
-//! albedo per fragment and shades per fragment (rasterize, interpolate, shade, blend_hard);
-//! `softras` and `dibr` shade per vertex and let the raster op interpolate (and, for SoftRas,
-//! aggregate) the colours (Gouraud shading, as in SoftRas's own face-fitting examples). The
-//! photometric loss weights pixels by the render's alpha held constant, so DIB-R's silhouette
-//! gradient (which flows through alpha only) is not used: the outline is driven by the
-//! landmarks, and DIB-R's colours carry its interior (hard) gradients.
+//! normals of the posed mesh (world = view space). Every method goes through the method
+//! registry (`render_ops::methods`): methods with a composed path (all but `softras`)
+//! interpolate normals and albedo per fragment and shade per fragment, composed with the
+//! method's visibility stage (`render_fragments`); `softras` shades per vertex and lets its op
+//! interpolate and aggregate the colours (Gouraud shading, as in SoftRas's own face-fitting
+//! examples), until the composed soft stage exists. The photometric loss weights pixels by the
+//! render's alpha held constant, so DIB-R's silhouette gradient (which flows through alpha only)
+//! is not used: the outline is driven by the landmarks, and DIB-R's colours carry its interior
+//! (hard) gradients.
 
 use std::sync::Arc;
 
 use autodiff::{Tape, Var};
 use ndarray::{Array2, Array3, ArrayD};
-use render_ops::blend::blend_hard;
 use render_ops::interpolate::interpolate;
-use render_ops::raster::RasterSettings;
-use render_ops::rasterize::rasterize;
+use render_ops::methods::{render_fragments, render_vertex_colors, MethodSettings};
 use render_ops::scene::Method;
 use render_ops::shade::normals::vertex_normals;
 use render_ops::shade::sh::sh_shade;
-use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
 use render_ops::transform::{axis_angle_to_matrix, perspective_clip, rigid_transform};
 
 use super::{FaceParams, FitError};
@@ -38,25 +37,6 @@ use crate::morphable::{landmark_combination, LandmarkPoint, Morphable, RegionSpl
 pub const NEAR_MM: f64 = 50.0;
 /// Far plane of the fitting camera, millimetres.
 pub const FAR_MM: f64 = 2000.0;
-
-/// Methods the face renderer supports in this build.
-pub const SUPPORTED_METHODS: [Method; 3] = [Method::Hard, Method::SoftRas, Method::Dibr];
-
-/// Checks that `method` is supported by the face renderer.
-pub fn check_method(method: Method) -> Result<(), FitError> {
-    if SUPPORTED_METHODS.contains(&method) {
-        Ok(())
-    } else {
-        Err(FitError::UnsupportedMethod {
-            method: method.name(),
-            supported: SUPPORTED_METHODS
-                .iter()
-                .map(|m| m.name())
-                .collect::<Vec<_>>()
-                .join(", "),
-        })
-    }
-}
 
 /// Parameter variables of one evaluation (see [`FaceParams`] for the meaning).
 #[derive(Clone, Copy, Debug)]
@@ -129,7 +109,6 @@ pub struct FaceRenderer<'m> {
 impl<'m> FaceRenderer<'m> {
     /// A renderer of `model` with `options`; errors for unsupported methods or empty images.
     pub fn new(model: &'m Morphable<f64>, options: RenderOptions) -> Result<Self, FitError> {
-        check_method(options.method)?;
         if options.width == 0 || options.height == 0 {
             return Err(FitError::Invalid(format!(
                 "image size {}x{} is empty",
@@ -227,41 +206,21 @@ impl<'m> FaceRenderer<'m> {
         let pos = self.split.gather(world);
         let clip = self.clip(pos, v.focal)?;
         let o = &self.options;
-        match o.method {
-            Method::Hard => {
-                let r = rasterize(
-                    clip,
-                    self.render_faces.clone(),
-                    &RasterSettings {
-                        barycentric_derivatives: false,
-                        ..RasterSettings::new(o.width, o.height)
-                    },
-                )?;
-                let n = interpolate(normals, &r)?;
-                let a = interpolate(albedo, &r)?;
-                let col = sh_shade(n, a, v.sh);
-                Ok(blend_hard(col, &r.fragments, &o.background)?)
-            }
-            Method::SoftRas => {
-                let col = sh_shade(normals, albedo, v.sh);
-                let mut s = SoftSettings::new(o.width, o.height, NEAR_MM, FAR_MM);
-                s.sigma = o.sigma;
-                s.gamma = o.gamma;
-                s.background = o.background.to_vec();
-                Ok(softras(clip, col, self.render_faces.clone(), &s)?)
-            }
-            Method::Dibr => {
-                let col = sh_shade(normals, albedo, v.sh);
-                let mut s = DibrSettings::new(o.width, o.height);
-                s.delta = o.delta;
-                s.background = o.background.to_vec();
-                Ok(dibr(clip, col, self.render_faces.clone(), &s)?)
-            }
-            m => {
-                check_method(m)?;
-                unreachable!("check_method accepts only the methods matched above")
-            }
+        let mut s = MethodSettings::new(o.method, o.width, o.height);
+        s.view.background = o.background.to_vec();
+        (s.sigma, s.gamma, s.delta) = (o.sigma, o.gamma, o.delta);
+        (s.near, s.far) = (NEAR_MM, FAR_MM);
+        let faces = self.render_faces.clone();
+        if !o.method.info().composes {
+            // Per-vertex (Gouraud) shading for methods without a composed path.
+            let col = sh_shade(normals, albedo, v.sh);
+            return Ok(render_vertex_colors(clip, col, faces, &s)?);
         }
+        Ok(render_fragments(clip, faces, &s, &mut |r| {
+            let n = interpolate(normals, r)?;
+            let a = interpolate(albedo, r)?;
+            Ok(sh_shade(n, a, v.sh))
+        })?)
     }
 
     /// Plain render of `p`: the image `[H, W, 4]` and all vertices' pixel positions `[V, 2]`.

@@ -585,7 +585,7 @@ fn vertex_sums<T, const C: usize>(inp: &Inputs<'_, T>, sc: &mut Scratch) -> Chun
 mod tests {
     use super::*;
     use crate::mesh::Mesh;
-    use crate::raster::{rasterize, RasterSettings};
+    use crate::raster::{rasterize_fragments, RasterSettings};
 
     /// A sphere of 1280 faces in clip space: `x` scaled by `sx`, `w = wz z + w0`.
     fn sphere_clip(sx: f64, wz: f64, w0: f64) -> (Mesh<f64>, Vec<[f64; 4]>) {
@@ -623,7 +623,7 @@ mod tests {
                     ..RasterSettings::new(w, h)
                 };
                 let clip32: Vec<[f32; 4]> = clip.iter().map(|v| v.map(|x| x as f32)).collect();
-                let frags = rasterize(&clip32, &mesh.faces, &s).unwrap();
+                let frags = rasterize_fragments(&clip32, &mesh.faces, &s).unwrap();
                 assert!(frags.len() > CHUNK, "several chunks");
                 for c in [1, 3] {
                     let attrs: Vec<f32> = (0..nv * c).map(|i| wave(i, 0.37)).collect();
@@ -686,7 +686,7 @@ mod tests {
             perspective_correct: false,
             ..RasterSettings::new(w, h)
         };
-        let frags = rasterize(&clip, &mesh.faces, &s).unwrap();
+        let frags = rasterize_fragments(&clip, &mesh.faces, &s).unwrap();
         let n = frags.len();
         for c in [1, 2, 3] {
             let attrs: Vec<f64> = (0..nv * c).map(|i| wave(i, 0.37)).collect();

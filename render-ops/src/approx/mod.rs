@@ -32,8 +32,9 @@
 //!
 //! These fused ops take interpolated per-vertex attributes only: they are the fast path for
 //! per-vertex colours. For textures and per-fragment shaders, [`crate::boundary`] has `deodr`,
-//! `opendr` and `nmr` as ops over any shaded image (the composed path, which
-//! [`crate::pipeline`] takes for lit or textured scenes).
+//! `opendr` and `nmr` as ops over any shaded image, and [`tf_mesh::rasterize_extrapolated`]
+//! with [`tf_mesh::blend_band`] is `tf_mesh`'s composed form (the paths
+//! [`crate::methods::render_fragments`] takes for lit or textured scenes).
 //!
 //! All work is in `f64` whatever the scalar. The exact part shared by all four (attribute
 //! gradients and the interior, barycentric position gradient of the hard render) is one pass
@@ -148,7 +149,7 @@ pub(crate) fn prepare<'t, T: Real>(
     }
     let cv = clip.value()?;
     let rows = clip_rows(&cv)?;
-    let frags = crate::raster::rasterize(&rows, faces, &s.raster())?;
+    let frags = crate::raster::rasterize_fragments(&rows, faces, &s.raster())?;
     let bg = (0..c)
         .map(|ch| T::from_f64c(s.background.get(ch).copied().unwrap_or(0.0)))
         .collect();

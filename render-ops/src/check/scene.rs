@@ -45,7 +45,7 @@ use super::{
 };
 use crate::error::RenderError;
 use crate::pipeline::Wrt;
-use crate::raster::{rasterize, RasterSettings};
+use crate::raster::{rasterize_fragments, RasterSettings};
 use crate::scene::{Method, Raster, Scene};
 
 /// A differentiable scene input.
@@ -190,7 +190,7 @@ pub fn vertex_categories(
     let clip: Vec<[f64; 4]> = pos.iter().map(|&p| scene.camera.project(p)).collect();
     let mut settings = RasterSettings::new(w, h);
     settings.cull_backfaces = scene.desc.raster.cull_backfaces;
-    let frags = rasterize(&clip, faces, &settings)?;
+    let frags = rasterize_fragments(&clip, faces, &settings)?;
     let top: Vec<Option<(u32, f64)>> = (0..w * h)
         .map(|p| frags.nearest(p).map(|f| (f.face, f.depth)))
         .collect();

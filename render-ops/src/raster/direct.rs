@@ -2,7 +2,7 @@
 //! [`super::hard`] with one fragment per pixel, followed in the same tile task by the
 //! attribute interpolation and the hard blend, written straight into the image `[H, W, C + 1]`.
 //!
-//! It is the image of [`rasterize`](super::rasterize) (`K = 1`) +
+//! It is the image of [`rasterize`](super::rasterize_fragments) (`K = 1`) +
 //! [`interpolate`](crate::interpolate::interpolate) +
 //! [`blend_hard`](crate::blend::blend_hard), bit for bit, for a forward that needs no
 //! gradients: no packed fragment list, no `[N, C]` fragment colours, no second and third
@@ -25,16 +25,16 @@ use super::{RasterError, RasterSettings, TILE_SIZE};
 
 /// The hard render of per-vertex attributes `attrs` (`[V, C]` row-major, `C =
 /// background.len()`) over `background`: an image `[H, W, C + 1]` (row-major, last channel
-/// the coverage), equal bit for bit to [`rasterize`](super::rasterize) with one fragment per
+/// the coverage), equal bit for bit to [`rasterize`](super::rasterize_fragments) with one fragment per
 /// pixel followed by [`interpolate`](crate::interpolate::interpolate) and
 /// [`blend_hard`](crate::blend::blend_hard). `faces_per_pixel` is ignored (only the nearest
 /// fragment is drawn); the other settings act as in the rasterizer. Parallel over tiles,
 /// bit-identical for any number of threads.
 ///
 /// # Errors
-/// Those of [`rasterize`](super::rasterize), and attributes whose length is not
+/// Those of [`rasterize`](super::rasterize_fragments), and attributes whose length is not
 /// `V * background.len()`.
-pub fn render_attributes<T: Real>(
+pub fn render_attributes_direct<T: Real>(
     clip: &[[T; 4]],
     faces: &[[u32; 3]],
     attrs: &[T],
@@ -44,7 +44,7 @@ pub fn render_attributes<T: Real>(
     render_attributes_with(clip, faces, attrs, background, s, true)
 }
 
-/// [`render_attributes`], with the AVX2 kernels only if `avx2` (and the CPU has them).
+/// [`render_attributes_direct`], with the AVX2 kernels only if `avx2` (and the CPU has them).
 pub(crate) fn render_attributes_with<T: Real>(
     clip: &[[T; 4]],
     faces: &[[u32; 3]],

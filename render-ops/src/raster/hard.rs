@@ -106,7 +106,7 @@ pub(crate) struct Ctx<'a> {
 /// # Errors
 /// Empty or too large images, `faces_per_pixel` out of range, face indices out of range,
 /// non-finite clip coordinates, and more fragments than `u32` offsets hold.
-pub fn rasterize<T: Real>(
+pub fn rasterize_fragments<T: Real>(
     clip: &[[T; 4]],
     faces: &[[u32; 3]],
     s: &RasterSettings,
@@ -114,7 +114,7 @@ pub fn rasterize<T: Real>(
     rasterize_with(clip, faces, s, use_avx2())
 }
 
-/// [`rasterize`], with the AVX2 kernels (the K = 1 span test and assembly) when `avx2`
+/// [`rasterize_fragments`], with the AVX2 kernels (the K = 1 span test and assembly) when `avx2`
 /// (bit-identical results either way).
 pub(crate) fn rasterize_with<T: Real>(
     clip: &[[T; 4]],
@@ -146,7 +146,7 @@ pub(crate) fn rasterize_with<T: Real>(
 }
 
 /// Validates the inputs, maps the vertices to screen space and bins the faces into tiles:
-/// the set-up shared by [`rasterize`] and the direct render ([`super::direct`]). Returns the
+/// the set-up shared by [`rasterize_fragments`] and the direct render ([`super::direct`]). Returns the
 /// vertices (`f64` clip coordinates), the bins, and whether the AVX2 kernels may run (`avx2`
 /// and the CPU has them).
 pub(crate) fn prepare<T: Real>(
@@ -778,7 +778,7 @@ fn test_pixel<S: ZShader>(
     }
 }
 
-/// Vector-Jacobian product of [`rasterize`] with the visibility (which face each fragment
+/// Vector-Jacobian product of [`rasterize_fragments`] with the visibility (which face each fragment
 /// belongs to) held fixed: the interior gradient of the hard rasterizer.
 ///
 /// `grad_bary[i]` is `dL/dbary` of fragment `i` (its three components are independent outputs);
@@ -797,7 +797,7 @@ fn test_pixel<S: ZShader>(
 /// face and chunk.
 ///
 /// # Errors
-/// As [`rasterize`], plus gradient arrays whose lengths differ from `frags.len()` and fragments
+/// As [`rasterize_fragments`], plus gradient arrays whose lengths differ from `frags.len()` and fragments
 /// that do not match the settings or faces.
 pub fn rasterize_backward<T: Real>(
     clip: &[[T; 4]],

@@ -54,7 +54,7 @@
 //!   and depth ties go to the lower face index, so the result is bit-identical for any number
 //!   of threads.
 //! * **Direct render.** A forward that needs only the hard image of per-vertex attributes
-//!   ([`render_attributes`]: vertex colours, no gradients) skips the fragment list: each tile
+//!   ([`render_attributes_direct`]: vertex colours, no gradients) skips the fragment list: each tile
 //!   task runs the same z-test with `K = 1` and writes its pixels of the image itself, bit for
 //!   bit the image of `rasterize` + `interpolate` + `blend_hard`. For `f32` RGB each fragment is
 //!   shaded in the z-test when it wins its pixel (a hook compiled out of the rasterizer).
@@ -79,10 +79,10 @@ mod edge;
 mod fragments;
 mod hard;
 
-pub use direct::render_attributes;
+pub use direct::render_attributes_direct;
 pub(crate) use fragments::PixelCursor;
 pub use fragments::{Fragment, Fragments};
-pub use hard::{rasterize, rasterize_backward};
+pub use hard::{rasterize_backward, rasterize_fragments};
 pub(crate) use hard::{FaceVjp, RunSetup, RunVjp};
 
 /// Side of the square screen tiles that faces are binned into and that are rasterized in parallel.

@@ -270,7 +270,7 @@ fn sphere_watertight<T: Real>() {
             dot3(norm3(cross3(sub3(b, a), sub3(c, a))), a)
         })
         .fold(f64::INFINITY, f64::min);
-    let culled = rasterize(
+    let culled = rasterize_fragments(
         &clip,
         &f,
         &RasterSettings {
@@ -279,7 +279,7 @@ fn sphere_watertight<T: Real>() {
         },
     )
     .unwrap();
-    let both = rasterize(&clip, &f, &settings(w, h, 4)).unwrap();
+    let both = rasterize_fragments(&clip, &f, &settings(w, h, 4)).unwrap();
     let (cc, cb) = (counts(&culled), counts(&both));
     let tan = (48.9f64.to_radians() / 2.0).tan();
     let (mut inside, mut boundary) = (0, 0);
@@ -335,7 +335,7 @@ fn sphere_watertight<T: Real>() {
         if T::NAME == "f32" { 2e-3 } else { 1e-8 },
     );
     // K = 2 gives exactly front and back for interior pixels.
-    let k2 = rasterize(&clip, &f, &settings(w, h, 2)).unwrap();
+    let k2 = rasterize_fragments(&clip, &f, &settings(w, h, 2)).unwrap();
     assert_eq!(counts(&k2), cb);
 }
 
@@ -391,7 +391,7 @@ fn grid_watertight<T: Real>() {
         let (clip, faces) = grid_mesh::<T>(seed, mirror);
         assert_eq!(faces.len(), 5000);
         let s = settings(200, 150, 4);
-        let fr = rasterize(&clip, &faces, &s).unwrap();
+        let fr = rasterize_fragments(&clip, &faces, &s).unwrap();
         assert!(
             counts(&fr).iter().all(|&c| c == 1),
             "grid not covered exactly once"
@@ -405,7 +405,7 @@ fn grid_watertight<T: Real>() {
             if T::NAME == "f32" { 2e-3 } else { 1e-8 },
         );
         // Mirrored faces are clockwise (back faces) and culled.
-        let culled = rasterize(
+        let culled = rasterize_fragments(
             &clip,
             &faces,
             &RasterSettings {
@@ -462,7 +462,7 @@ fn pixel_aligned<T: Real>() {
         }
     }
     let s = settings(w, h, 4);
-    let fr = rasterize(&clip, &faces, &s).unwrap();
+    let fr = rasterize_fragments(&clip, &faces, &s).unwrap();
     assert!(
         counts(&fr).iter().all(|&c| c == 1),
         "pixel-aligned mesh not covered exactly once"
@@ -530,7 +530,7 @@ fn ground_plane<T: Real>() {
         cull_backfaces: true,
         ..settings(w, h, 2)
     };
-    let fr = rasterize(&clip, &faces, &s).unwrap();
+    let fr = rasterize_fragments(&clip, &faces, &s).unwrap();
     let tan = (fovy.to_radians() / 2.0).tan();
     let tol = if T::NAME == "f32" { 1e-3 } else { 1e-9 };
     let mut checked = 0;
@@ -577,7 +577,7 @@ fn ground_plane<T: Real>() {
             perspective_correct: persp,
             ..settings(w, h, 2)
         };
-        let fr2 = rasterize(&clip, &faces, &s2).unwrap();
+        let fr2 = rasterize_fragments(&clip, &faces, &s2).unwrap();
         assert_eq!(counts(&fr2), counts(&fr));
         check_consistent(&clip, &faces, &fr2, &s2, 1e-3);
     }
@@ -599,11 +599,15 @@ fn near_plane_corners<T: Real>() {
     // Wholly behind the camera (w < 0), and wholly between the eye and the near plane.
     for z in [5.0, -0.05] {
         let clip = project::<T>(&m, &[[-1.0, -1.0, z], [1.0, -1.0, z], [0.0, 1.0, z]]);
-        assert!(rasterize(&clip, &[[0, 1, 2]], &s).unwrap().is_empty());
+        assert!(rasterize_fragments(&clip, &[[0, 1, 2]], &s)
+            .unwrap()
+            .is_empty());
     }
     // A triangle through the eye (seen edge-on) and one containing it: nothing, no NaN.
     let clip = project::<T>(&m, &[[0.0, -1.0, 1.0], [0.0, -1.0, -1.0], [0.0, 1.0, -1.0]]);
-    assert!(rasterize(&clip, &[[0, 1, 2]], &s).unwrap().is_empty());
+    assert!(rasterize_fragments(&clip, &[[0, 1, 2]], &s)
+        .unwrap()
+        .is_empty());
     // Vertices at w = 1e-12, 0, -1e-12 and w = 1e-12 with z on the near plane.
     for (wv, zv) in [
         (1e-12, 0.0),
@@ -625,7 +629,7 @@ fn near_plane_corners<T: Real>() {
                 perspective_correct: persp,
                 ..s
             };
-            let fr = rasterize(&clip, &[[0, 1, 2], [0, 2, 1]], &s).unwrap();
+            let fr = rasterize_fragments(&clip, &[[0, 1, 2], [0, 2, 1]], &s).unwrap();
             assert!(!fr.is_empty());
             check_consistent(&clip, &[[0, 1, 2], [0, 2, 1]], &fr, &s, 1e-2);
             let g = vec![[T::one(); 3]; fr.len()];
@@ -646,7 +650,7 @@ fn near_plane_corners<T: Real>() {
     // the original vertices (checked by check_consistent's ray test).
     let pts = [[-2.0, -1.0, 3.0], [2.0, -1.0, 3.0], [0.0, 0.5, -4.0]];
     let clip = project::<T>(&m, &pts);
-    let fr = rasterize(&clip, &[[0, 1, 2]], &s).unwrap();
+    let fr = rasterize_fragments(&clip, &[[0, 1, 2]], &s).unwrap();
     assert!(fr.len() > 100, "{}", fr.len());
     check_consistent(
         &clip,
@@ -658,7 +662,7 @@ fn near_plane_corners<T: Real>() {
     // And one behind, two in front.
     let pts = [[-2.0, -1.0, -3.0], [2.0, -1.0, -3.0], [0.0, 0.5, 4.0]];
     let clip = project::<T>(&m, &pts);
-    let fr = rasterize(&clip, &[[0, 1, 2]], &s).unwrap();
+    let fr = rasterize_fragments(&clip, &[[0, 1, 2]], &s).unwrap();
     assert!(fr.len() > 100);
     check_consistent(
         &clip,
@@ -710,7 +714,7 @@ fn gradcheck(persp: bool, seed: u64) {
         perspective_correct: persp,
         ..settings(24, 20, 3)
     };
-    let base = rasterize(&clip, &faces, &s).unwrap();
+    let base = rasterize_fragments(&clip, &faces, &s).unwrap();
     let n = base.len();
     let mut rng = Rng(seed + 100);
     let gb: Vec<[f64; 3]> = (0..n)
@@ -732,7 +736,7 @@ fn gradcheck(persp: bool, seed: u64) {
             for sign in [1.0, -1.0] {
                 let mut c = clip.clone();
                 c[v][q] += sign * h;
-                pair.push(rasterize(&c, &faces, &s).unwrap());
+                pair.push(rasterize_fragments(&c, &faces, &s).unwrap());
             }
             runs.push(pair);
         }
@@ -837,7 +841,7 @@ fn bary_derivatives_match_neighbours() {
             perspective_correct: persp,
             ..settings(40, 40, 1)
         };
-        let fr = rasterize(&clip, &faces, &s).unwrap();
+        let fr = rasterize_fragments(&clip, &faces, &s).unwrap();
         let mut checked = 0;
         for r in 0..39 {
             for c in 0..39 {
@@ -940,7 +944,7 @@ fn soups<T: Real>() {
                 perspective_correct: persp,
                 barycentric_derivatives: true,
             };
-            let fr = rasterize(&clip, &faces, &s).unwrap();
+            let fr = rasterize_fragments(&clip, &faces, &s).unwrap();
             fr.validate().unwrap();
             let all = fr
                 .bary
@@ -995,10 +999,10 @@ fn kbuffer_reuse_matches_faces_alone() {
             .num_threads(1)
             .build()
             .unwrap();
-        let fr = pool.install(|| rasterize(&clip, &faces, &s).unwrap());
+        let fr = pool.install(|| rasterize_fragments(&clip, &faces, &s).unwrap());
         let mut cand: Vec<Vec<(f64, u32)>> = vec![Vec::new(); fr.num_pixels()];
         for fi in 0..faces.len() {
-            let one = rasterize(&clip, &faces[fi..fi + 1], &s).unwrap();
+            let one = rasterize_fragments(&clip, &faces[fi..fi + 1], &s).unwrap();
             for (p, c) in cand.iter_mut().enumerate() {
                 c.extend(one.iter_pixel(p).map(|x| (x.depth, fi as u32)));
             }
@@ -1043,7 +1047,7 @@ fn deterministic_across_thread_counts() {
             .build()
             .unwrap();
         pool.install(|| {
-            let fr = rasterize(&clip, &faces, &s).unwrap();
+            let fr = rasterize_fragments(&clip, &faces, &s).unwrap();
             let g: Vec<[f64; 3]> = (0..fr.len())
                 .map(|i| [(i % 7) as f64 - 3.0, 0.5, -1.0])
                 .collect();
@@ -1100,7 +1104,7 @@ fn avx2_portable_and_derivative_free_fragments_agree() {
     check::<f32>(&clip32, &faces);
 }
 
-/// The direct render ([`render_attributes`]) is the image of the fragments' nearest
+/// The direct render ([`render_attributes_direct`]) is the image of the fragments' nearest
 /// barycentrics interpolated as `interpolate` does (`b_0 a_0 + b_1 a_1 + b_2 a_2` in `T`) over
 /// the background, alpha 1 where covered, bit for bit: `f32` and `f64`, 0, 1, 3 and 5
 /// channels, both interpolation modes, culling, AVX2 and portable kernels, 1 and 3 threads, on
@@ -1173,13 +1177,13 @@ fn direct_render_matches_interpolated_nearest_fragments() {
     // Typed errors: attributes of the wrong length, and the rasterizer's own.
     let s = settings(8, 8, 1);
     assert!(matches!(
-        render_attributes(&clip32, &faces, &[0.0f32; 5], &[0.0; 3], &s),
+        render_attributes_direct(&clip32, &faces, &[0.0f32; 5], &[0.0; 3], &s),
         Err(RasterError::LengthMismatch { .. })
     ));
     let bad = vec![[0u32, 1, clip32.len() as u32]];
     let attrs = vec![0.0f32; clip32.len() * 3];
     assert!(matches!(
-        render_attributes(&clip32, &bad, &attrs, &[0.0; 3], &s),
+        render_attributes_direct(&clip32, &bad, &attrs, &[0.0; 3], &s),
         Err(RasterError::FaceIndexOutOfRange { .. })
     ));
 }
@@ -1195,7 +1199,7 @@ fn typed_errors() {
     ];
     let s = RasterSettings::default();
     assert_eq!(
-        rasterize(&clip, &[[0, 1, 3]], &s).unwrap_err(),
+        rasterize_fragments(&clip, &[[0, 1, 3]], &s).unwrap_err(),
         RasterError::FaceIndexOutOfRange {
             face: 0,
             index: 3,
@@ -1205,23 +1209,23 @@ fn typed_errors() {
     let mut bad = clip.clone();
     bad[1][2] = f32::NAN;
     assert!(matches!(
-        rasterize(&bad, &[[0, 1, 2]], &s).unwrap_err(),
+        rasterize_fragments(&bad, &[[0, 1, 2]], &s).unwrap_err(),
         RasterError::NonFiniteVertex { vertex: 1, .. }
     ));
     bad[1][2] = f32::INFINITY;
     assert!(matches!(
-        rasterize(&bad, &[[0, 1, 2]], &s),
+        rasterize_fragments(&bad, &[[0, 1, 2]], &s),
         Err(RasterError::NonFiniteVertex { vertex: 1, .. })
     ));
     assert_eq!(
-        rasterize(&clip, &[[0, 1, 2]], &RasterSettings { width: 0, ..s }).unwrap_err(),
+        rasterize_fragments(&clip, &[[0, 1, 2]], &RasterSettings { width: 0, ..s }).unwrap_err(),
         RasterError::EmptyImage {
             width: 0,
             height: 256
         }
     );
     assert!(matches!(
-        rasterize(
+        rasterize_fragments(
             &clip,
             &[[0, 1, 2]],
             &RasterSettings {
@@ -1232,7 +1236,7 @@ fn typed_errors() {
         Err(RasterError::BadFacesPerPixel { k: 0, .. })
     ));
     assert!(matches!(
-        rasterize(
+        rasterize_fragments(
             &clip,
             &[[0, 1, 2]],
             &RasterSettings {
@@ -1244,7 +1248,7 @@ fn typed_errors() {
         Err(RasterError::ImageTooLarge { .. })
     ));
     assert!(matches!(
-        rasterize(
+        rasterize_fragments(
             &clip,
             &[[0, 1, 2]],
             &RasterSettings {
@@ -1255,7 +1259,7 @@ fn typed_errors() {
         ),
         Err(RasterError::ImageTooLarge { .. })
     ));
-    let fr = rasterize(&clip, &[[0, 1, 2]], &s).unwrap();
+    let fr = rasterize_fragments(&clip, &[[0, 1, 2]], &s).unwrap();
     assert!(!fr.is_empty());
     assert!(matches!(
         rasterize_backward(&clip, &[[0, 1, 2]], &fr, &[], None, None, &s),
@@ -1284,7 +1288,7 @@ fn typed_errors() {
         ),
         Err(RasterError::FragmentsMismatch(_))
     ));
-    let msg = rasterize(&clip, &[[0, 1, 2], [2, 7, 1]], &s)
+    let msg = rasterize_fragments(&clip, &[[0, 1, 2], [2, 7, 1]], &s)
         .unwrap_err()
         .to_string();
     assert!(
@@ -1301,7 +1305,7 @@ fn fragment_helpers() {
         [-1.0, 1.0, 0.0, 1.0],
     ];
     let s = settings(8, 8, 1);
-    let fr = rasterize(&clip, &[[0, 1, 2]], &s).unwrap();
+    let fr = rasterize_fragments(&clip, &[[0, 1, 2]], &s).unwrap();
     // The lower-left half: pixel (row r, col c) is inside iff c < r; the centres with c == r lie
     // exactly on the hypotenuse, a right/bottom edge that the top-left rule excludes.
     assert_eq!(fr.covered_pixels(), 28);

@@ -1,0 +1,421 @@
+//! The method registry: what each of the seven visibility methods is (its [`MethodInfo`]:
+//! name, [`Kind`], which gradients are exact, whether it composes with per-fragment shading),
+//! the settings every method shares ([`ViewSettings`]) and those of one method
+//! ([`MethodSettings`], from which each op's own settings struct is built), and the two entry
+//! points every caller goes through:
+//!
+//! * [`render_vertex_colors`]: per-vertex colours `[V, C]` (Gouraud shading), the fused fast
+//!   path of each method (one op, or the direct render for `hard`);
+//! * [`render_fragments`]: any per-fragment shader (interpolated attributes, textures,
+//!   lighting, a user's closure) composed with the method's visibility stage: rasterize (for
+//!   `tf_mesh` with its silhouette band of extrapolated fragments), the shader, the hard blend,
+//!   then the method's boundary op or soft alpha.
+//!
+//! The scene pipeline ([`crate::pipeline`]), `models::fit` and `tapestry bench` dispatch on the
+//! method only here. To add a method: a [`Method`] variant (scene.rs), its [`MethodInfo`] in
+//! [`Method::info`], and its arms in the two entry points.
+//!
+//! The composed soft stage (per-fragment shading aggregated by SoftRas's softmax) plugs in at
+//! [`soft_fragments`]; until it exists, `softras` renders per-vertex colours only
+//! ([`MethodInfo::composes`] is false) and callers shade at the vertices for it.
+
+use std::sync::Arc;
+
+use autodiff::{Real, Var};
+
+use crate::approx::{self, ApproxSettings};
+use crate::blend::blend_hard;
+use crate::boundary::{self, BoundarySettings};
+use crate::error::RenderError;
+use crate::raster::RasterSettings;
+use crate::rasterize::{rasterize, render_attributes, Rasterized};
+use crate::scene::{Method, Raster};
+use crate::soft::{self, DibrSettings, SoftSettings};
+
+/// How a method decides visibility and where its position gradients come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    /// The z-buffer image; gradients through the barycentrics of covered pixels only.
+    Hard,
+    /// The hard image (or DEODR's overdrawn one) plus a boundary term at silhouette and
+    /// occlusion edges.
+    Boundary,
+    /// Probabilistic coverage of every face within a cut-off distance.
+    Soft,
+}
+
+/// Which gradients of a method are those of its own forward (exact), and which approximate
+/// the box-filtered image's.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Exactness {
+    /// Gradients with respect to colours, texels and lights.
+    pub appearance: bool,
+    /// Position gradients of the forward the method computes (for `hard`, `deodr`,
+    /// `softras` and `dibr` the derivative of their image; for the others a surrogate).
+    pub positions: bool,
+    /// Whether silhouette vertices get a gradient at all.
+    pub silhouette: bool,
+}
+
+/// What the registry knows about a method.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MethodInfo {
+    /// The method.
+    pub method: Method,
+    /// The scene JSON name.
+    pub name: &'static str,
+    /// Visibility kind.
+    pub kind: Kind,
+    /// Which gradients are exact.
+    pub exact: Exactness,
+    /// Whether [`render_fragments`] runs a per-fragment shader for this method; `false`:
+    /// per-vertex colours only ([`render_vertex_colors`]).
+    pub composes: bool,
+    /// The paper.
+    pub paper: &'static str,
+}
+
+impl Method {
+    /// The registry entry of the method.
+    pub fn info(self) -> MethodInfo {
+        let e = |appearance, positions, silhouette| Exactness {
+            appearance,
+            positions,
+            silhouette,
+        };
+        let (kind, exact, composes, paper) = match self {
+            Method::Hard => (
+                Kind::Hard,
+                e(true, true, false),
+                true,
+                "z-buffer rasterization",
+            ),
+            Method::TfMesh => (
+                Kind::Boundary,
+                e(true, false, true),
+                true,
+                "Genova et al., CVPR 2018 (TF Mesh Renderer)",
+            ),
+            Method::OpenDr => (
+                Kind::Boundary,
+                e(true, false, true),
+                true,
+                "Loper and Black, ECCV 2014 (OpenDR)",
+            ),
+            Method::Nmr => (
+                Kind::Boundary,
+                e(true, false, true),
+                true,
+                "Kato et al., CVPR 2018 (Neural 3D Mesh Renderer)",
+            ),
+            Method::SoftRas => (
+                Kind::Soft,
+                e(true, true, true),
+                false,
+                "Liu et al., ICCV 2019 (Soft Rasterizer)",
+            ),
+            Method::Dibr => (
+                Kind::Soft,
+                e(true, true, true),
+                true,
+                "Chen et al., NeurIPS 2019 (DIB-R)",
+            ),
+            Method::Deodr => (
+                Kind::Boundary,
+                e(true, true, true),
+                true,
+                "de La Gorce et al., TPAMI 2011 (DEODR)",
+            ),
+        };
+        MethodInfo {
+            method: self,
+            name: self.name(),
+            kind,
+            exact,
+            composes,
+            paper,
+        }
+    }
+}
+
+/// The settings every method shares: image size, background, culling and interpolation.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewSettings {
+    /// Image width in pixels.
+    pub width: usize,
+    /// Image height in pixels.
+    pub height: usize,
+    /// Background value per colour channel (empty: zeros).
+    pub background: Vec<f64>,
+    /// Drop faces that are clockwise in NDC (default `false`; SoftRas ignores it).
+    pub cull_backfaces: bool,
+    /// Perspective-correct interpolation (default `true`).
+    pub perspective_correct: bool,
+}
+
+impl ViewSettings {
+    /// Defaults for a `width x height` image: zero background, no culling, perspective-correct.
+    pub fn new(width: usize, height: usize) -> Self {
+        ViewSettings {
+            width,
+            height,
+            background: Vec::new(),
+            cull_backfaces: false,
+            perspective_correct: true,
+        }
+    }
+
+    /// The background as `C` scalars (zeros past its end).
+    pub fn background_of<T: Real>(&self, c: usize) -> Vec<T> {
+        (0..c)
+            .map(|ch| T::from_f64c(self.background.get(ch).copied().unwrap_or(0.0)))
+            .collect()
+    }
+}
+
+/// One method with all its settings: the view, and the parameters each op reads (defaults
+/// as in docs/CONVENTIONS.md). The op settings structs ([`RasterSettings`],
+/// [`ApproxSettings`], [`BoundarySettings`], [`SoftSettings`], [`DibrSettings`]) are built
+/// from it by the methods below, so the shared fields are set in one place.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MethodSettings {
+    /// The method.
+    pub method: Method,
+    /// Size, background, culling, interpolation.
+    pub view: ViewSettings,
+    /// Fragments kept per pixel by the hard rasterizer (`hard`; the others draw the nearest).
+    pub faces_per_pixel: usize,
+    /// Screen-space barycentric derivatives (for texture filtering).
+    pub barycentric_derivatives: bool,
+    /// SoftRas sigma (squared NDC units).
+    pub sigma: f64,
+    /// SoftRas gamma (`z01` units).
+    pub gamma: f64,
+    /// SoftRas background term.
+    pub eps: f64,
+    /// Coverage below which softras and dibr ignore a face.
+    pub threshold: f64,
+    /// DIB-R delta (squared NDC units).
+    pub delta: f64,
+    /// DEODR's overdraw ramp width in pixels.
+    pub overdraw_px: f64,
+    /// Near plane distance (SoftRas's `z01`).
+    pub near: f64,
+    /// Far plane distance (SoftRas's `z01`).
+    pub far: f64,
+}
+
+impl MethodSettings {
+    /// `method` with its ops' defaults for a `width x height` image (near 0.1, far 100;
+    /// SoftRas interpolates in screen space, as SoftRas does, the others perspective-correctly).
+    pub fn new(method: Method, width: usize, height: usize) -> Self {
+        let r = Raster {
+            perspective_correct: method != Method::SoftRas,
+            ..Raster::with_method(method)
+        };
+        Self::from_raster(&r, ViewSettings::new(width, height), 0.1, 100.0)
+    }
+
+    /// The settings of a scene's `raster` block over `view` (its `cull_backfaces` and
+    /// `perspective_correct` are the raster block's) with the camera's clip planes.
+    pub fn from_raster(r: &Raster, view: ViewSettings, near: f64, far: f64) -> Self {
+        MethodSettings {
+            method: r.method,
+            view: ViewSettings {
+                cull_backfaces: r.cull_backfaces,
+                perspective_correct: r.perspective_correct,
+                ..view
+            },
+            faces_per_pixel: r.effective_faces_per_pixel().unwrap_or(1) as usize,
+            barycentric_derivatives: false,
+            sigma: r.sigma,
+            gamma: r.gamma,
+            eps: r.eps,
+            threshold: r.threshold,
+            delta: r.delta,
+            overdraw_px: r.overdraw_px,
+            near,
+            far,
+        }
+    }
+
+    /// The hard rasterizer's settings.
+    pub fn raster(&self) -> RasterSettings {
+        let v = &self.view;
+        RasterSettings {
+            faces_per_pixel: self.faces_per_pixel,
+            cull_backfaces: v.cull_backfaces,
+            perspective_correct: v.perspective_correct,
+            barycentric_derivatives: self.barycentric_derivatives,
+            ..RasterSettings::new(v.width, v.height)
+        }
+    }
+
+    /// The settings of the fused ops of [`crate::approx`].
+    pub fn approx(&self) -> ApproxSettings {
+        let v = &self.view;
+        ApproxSettings {
+            background: v.background.clone(),
+            perspective_correct: v.perspective_correct,
+            cull_backfaces: v.cull_backfaces,
+            overdraw_px: self.overdraw_px,
+            ..ApproxSettings::new(v.width, v.height)
+        }
+    }
+
+    /// The settings of the boundary ops of [`crate::boundary`].
+    pub fn boundary(&self) -> BoundarySettings {
+        BoundarySettings {
+            overdraw_px: self.overdraw_px,
+        }
+    }
+
+    /// SoftRas's settings (SoftRas does not cull).
+    pub fn softras(&self) -> SoftSettings {
+        let v = &self.view;
+        SoftSettings {
+            sigma: self.sigma,
+            gamma: self.gamma,
+            eps: self.eps,
+            threshold: self.threshold,
+            background: v.background.clone(),
+            perspective_correct: v.perspective_correct,
+            ..SoftSettings::new(v.width, v.height, self.near, self.far)
+        }
+    }
+
+    /// DIB-R's settings.
+    pub fn dibr(&self) -> DibrSettings {
+        let v = &self.view;
+        DibrSettings {
+            delta: self.delta,
+            threshold: self.threshold,
+            background: v.background.clone(),
+            perspective_correct: v.perspective_correct,
+            cull_backfaces: v.cull_backfaces,
+            ..DibrSettings::new(v.width, v.height)
+        }
+    }
+}
+
+/// Renders per-vertex colours `colors` `[V, C]` over `faces` from clip positions `[V, 4]`
+/// with the method of `s`: an image `[H, W, C + 1]` (colours over the background, then the
+/// coverage or soft alpha). The fused fast path of each method: `hard` draws in one pass when
+/// nothing needs a gradient ([`render_attributes`]); `tf_mesh`, `opendr`, `nmr`, `deodr` are
+/// the ops of [`crate::approx`]; `softras` is [`soft::softras`]; `dibr` the hard render with
+/// DIB-R's alpha ([`soft::dibr::composite`]).
+///
+/// # Errors
+/// The ops' errors (shapes, settings, background length).
+pub fn render_vertex_colors<'t, T: Real>(
+    clip: Var<'t, T>,
+    colors: Var<'t, T>,
+    faces: Arc<Vec<[u32; 3]>>,
+    s: &MethodSettings,
+) -> Result<Var<'t, T>, RenderError> {
+    let c = colors.shape().get(1).copied().unwrap_or(0);
+    match s.method {
+        Method::Hard => {
+            render_attributes(clip, colors, faces, &s.raster(), &s.view.background_of(c))
+        }
+        Method::TfMesh => approx::tf_mesh(clip, colors, faces, &s.approx()),
+        Method::OpenDr => approx::opendr(clip, colors, faces, &s.approx()),
+        Method::Nmr => approx::nmr(clip, colors, faces, &s.approx()),
+        Method::Deodr => approx::deodr(clip, colors, faces, &s.approx()),
+        Method::SoftRas => soft::softras(clip, colors, faces, &s.softras()),
+        Method::Dibr => {
+            let hard = render_attributes(
+                clip,
+                colors,
+                faces.clone(),
+                &s.raster(),
+                &s.view.background_of(c),
+            )?;
+            let alpha = soft::dibr_alpha(clip, faces, &s.dibr())?;
+            soft::dibr::composite(hard, alpha)
+        }
+    }
+}
+
+/// A per-fragment shader: the colours `[N, C]` of the fragments of a rasterization (any tape
+/// code: [`crate::interpolate`], [`crate::texture`], [`crate::shade`], a user's closure).
+/// `tf_mesh` calls it twice, for the hard fragments and for its silhouette band.
+pub type FragmentShader<'a, 't, T> =
+    dyn FnMut(&Rasterized<'t, T>) -> Result<Var<'t, T>, RenderError> + 'a;
+
+/// Renders `faces` from clip positions `[V, 4]` with the method of `s`, shading each fragment
+/// with `shader` (colours `[N, C]`; the background `s.view.background` has `C` values): an
+/// image `[H, W, C + 1]`.
+///
+/// * `hard`: rasterize, shade, [`blend_hard`].
+/// * `tf_mesh`: [`approx::tf_mesh::rasterize_extrapolated`], the shader on the hard
+///   fragments and on the silhouette band, [`approx::tf_mesh::blend_band`].
+/// * `opendr`, `nmr`, `deodr`: the hard image, then the method's op of [`crate::boundary`].
+/// * `dibr`: the hard image's colours with DIB-R's soft alpha.
+/// * `softras`: [`soft_fragments`] (not built yet: an `Unsupported` error).
+///
+/// # Errors
+/// The ops' and the shader's errors; `Unsupported` for a method whose
+/// [`MethodInfo::composes`] is false.
+pub fn render_fragments<'t, T: Real>(
+    clip: Var<'t, T>,
+    faces: Arc<Vec<[u32; 3]>>,
+    s: &MethodSettings,
+    shader: &mut FragmentShader<'_, 't, T>,
+) -> Result<Var<'t, T>, RenderError> {
+    let hard = |shader: &mut FragmentShader<'_, 't, T>| -> Result<_, RenderError> {
+        let r = rasterize(clip, faces.clone(), &s.raster())?;
+        let col = shader(&r)?;
+        let bg = s
+            .view
+            .background_of(col.shape().get(1).copied().unwrap_or(0));
+        let image = blend_hard(col, &r.fragments, &bg)?;
+        Ok((image, r))
+    };
+    match s.method {
+        Method::Hard => Ok(hard(shader)?.0),
+        Method::TfMesh => {
+            let r = approx::tf_mesh::rasterize_extrapolated(clip, faces, &s.raster())?;
+            let col = shader(&r.raster)?;
+            let band = shader(&r.band)?;
+            let bg = s
+                .view
+                .background_of(col.shape().get(1).copied().unwrap_or(0));
+            approx::tf_mesh::blend_band(col, band, &r, &bg)
+        }
+        Method::OpenDr => {
+            let (image, r) = hard(shader)?;
+            boundary::opendr(image, &r, clip)
+        }
+        Method::Nmr => {
+            let (image, r) = hard(shader)?;
+            boundary::nmr(image, &r, clip)
+        }
+        Method::Deodr => {
+            let (image, r) = hard(shader)?;
+            boundary::deodr(image, &r, clip, &s.boundary())
+        }
+        Method::Dibr => {
+            let (image, _) = hard(shader)?;
+            let alpha = soft::dibr_alpha(clip, faces, &s.dibr())?;
+            soft::dibr::composite(image, alpha)
+        }
+        Method::SoftRas => soft_fragments(clip, faces, s, shader),
+    }
+}
+
+/// The composed soft stage: per-pixel fragments within the cut-off, shaded by `shader`, and
+/// the method's aggregation. This is where SoftRas's per-fragment path plugs in; it is not
+/// built yet, so `softras` takes per-vertex colours ([`render_vertex_colors`]).
+fn soft_fragments<'t, T: Real>(
+    _clip: Var<'t, T>,
+    _faces: Arc<Vec<[u32; 3]>>,
+    s: &MethodSettings,
+    _shader: &mut FragmentShader<'_, 't, T>,
+) -> Result<Var<'t, T>, RenderError> {
+    Err(RenderError::Unsupported(format!(
+        "raster.method '{}' has no per-fragment (composed) shading yet: it renders per-vertex \
+         colours",
+        s.method.name()
+    )))
+}
