@@ -16,7 +16,10 @@ use crate::rasterize::{rasterize, render_attributes, Rasterized};
 use crate::scene::{Method, Scene};
 use crate::shade::stage::{texture_rgb, SceneShading, SCENE_SAMPLER};
 use crate::shade::{fragment_inputs, vertex_normals, MeshAttributes};
-use crate::soft::{dibr, softras, DibrSettings, SoftSettings};
+use crate::soft::{
+    dibr, dibr_aggregate, soft_fragments, softras, softras_aggregate, Coverage, DibrSettings,
+    SoftBlendSettings, SoftFragments, SoftSettings, SoftStageSettings,
+};
 use crate::texture::Texture;
 use crate::transform::to_clip;
 
@@ -177,6 +180,10 @@ impl<T: Real> Scene<T> {
             .positions
             .tape()
             .constant(ArrayD::from_shape_vec(IxDyn(&[3]), kd.to_vec()).expect("3"));
+        if method.is_soft() && (self.shading(vars).is_lit() || vars.texture.is_some()) {
+            // Lit or textured: the soft stage, per-fragment shading, the method's blend.
+            return self.render_soft(vars, clip, kd);
+        }
         if method == Method::SoftRas {
             let r = &self.desc.raster;
             let proj = self.camera.projection();
@@ -194,8 +201,8 @@ impl<T: Real> Scene<T> {
             return softras(clip, self.vertex_colors(vars, kd)?, faces, &s);
         }
         if method == Method::Dibr {
-            // DIB-R: the hard render's RGB (shaded per fragment, textured) with the soft
-            // silhouette as alpha (render_ops::soft::dibr).
+            // DIB-R over vertex colours: the hard render's RGB with the soft silhouette as
+            // alpha (render_ops::soft::dibr).
             let r = &self.desc.raster;
             let mut s = DibrSettings::new(
                 self.desc.image.width as usize,
@@ -323,8 +330,8 @@ impl<T: Real> Scene<T> {
         if vars.texture.is_some() {
             return Err(RenderError::Unsupported(format!(
                 "textures are sampled per fragment: raster.method '{}' takes per-vertex \
-                 colours; use method 'hard', 'opendr', 'nmr', 'deodr' or 'dibr' for textured \
-                 scenes",
+                 colours; use method 'hard', 'opendr', 'nmr', 'deodr', 'softras' or 'dibr' for \
+                 textured scenes",
                 self.desc.raster.method.name()
             )));
         }
@@ -365,32 +372,53 @@ impl<T: Real> Scene<T> {
         clip: Var<'t, T>,
         kd: Var<'t, T>,
     ) -> Result<Shaded<'t, T>, RenderError> {
-        let t = vars.positions.tape();
-        let shading = self.shading(vars);
         let settings = self.raster_settings();
         let bg = self.background();
+        if vars.texture.is_none() && !self.shading(vars).is_lit() {
+            // Vertex colours: in one pass when no gradient is asked for.
+            let faces = Arc::new(self.mesh.faces.clone());
+            let image = render_attributes(clip, vars.colors * kd, faces, &settings, &bg)?;
+            return Ok(Shaded {
+                image,
+                raster: None,
+            });
+        }
+        let (color, r, rclip) =
+            self.shade_with(vars, clip, kd, |c, faces| rasterize(c, faces, &settings))?;
+        let image = blend_hard(color, &r.fragments, &bg)?;
+        Ok(Shaded {
+            image,
+            raster: Some((r, rclip)),
+        })
+    }
+
+    /// Per-fragment colours `[N, 3]` of the scene (texture, lighting with interpolated
+    /// area-weighted vertex normals) over the fragments that `draw` gives for clip positions
+    /// and faces (the hard rasterizer, or the soft stage [`crate::soft::soft_fragments`]),
+    /// with those fragments and the clip positions drawn (those of the uv-split mesh for a
+    /// textured scene, see [`Scene::render_hard`]).
+    fn shade_with<'t, D>(
+        &self,
+        vars: &SceneVars<'t, T>,
+        clip: Var<'t, T>,
+        kd: Var<'t, T>,
+        draw: D,
+    ) -> Result<(Var<'t, T>, Rasterized<'t, T>, Var<'t, T>), RenderError>
+    where
+        D: FnOnce(Var<'t, T>, Arc<Vec<[u32; 3]>>) -> Result<Rasterized<'t, T>, RenderError>,
+    {
+        let t = vars.positions.tape();
+        let shading = self.shading(vars);
         let Some(texels) = vars.texture else {
             let faces = Arc::new(self.mesh.faces.clone());
-            if !shading.is_lit() {
-                // Vertex colours: in one pass when no gradient is asked for.
-                let image = render_attributes(clip, vars.colors * kd, faces, &settings, &bg)?;
-                return Ok(Shaded {
-                    image,
-                    raster: None,
-                });
-            }
-            let r = rasterize(clip, faces.clone(), &settings)?;
+            let r = draw(clip, faces.clone())?;
             let mesh = MeshAttributes::new(vars.positions)
                 .with_normals(vertex_normals(vars.positions, &faces))
                 .with_attribute("color", vars.colors);
             let f = fragment_inputs(&r, &mesh, self.eye(vars))?;
             let albedo = f.attribute("color").expect("set above") * kd;
             let color = shading.apply(f.position, f.normal, albedo, f.eye)?;
-            let image = blend_hard(color, &r.fragments, &bg)?;
-            return Ok(Shaded {
-                image,
-                raster: Some((r, clip)),
-            });
+            return Ok((color, r, clip));
         };
         if !self.mesh.has_uvs() {
             return Err(RenderError::Unsupported(format!(
@@ -407,7 +435,7 @@ impl<T: Real> Scene<T> {
         )
         .expect("v x 2");
         let rclip = clip.index_select(0, &index);
-        let r = rasterize(rclip, faces, &settings)?;
+        let r = draw(rclip, faces)?;
         let normals = vertex_normals(vars.positions, &Arc::new(self.mesh.faces.clone()));
         let mesh = MeshAttributes::new(vars.positions.index_select(0, &index))
             .with_normals(normals.index_select(0, &index))
@@ -417,11 +445,61 @@ impl<T: Real> Scene<T> {
         let tex = texture_rgb(f.sample(&Texture::new(texels, SCENE_SAMPLER)))?;
         let albedo = f.attribute("color").expect("set above") * kd * tex;
         let color = shading.apply(f.position, f.normal, albedo, f.eye)?;
-        let image = blend_hard(color, &r.fragments, &bg)?;
-        Ok(Shaded {
-            image,
-            raster: Some((r, rclip)),
-        })
+        Ok((color, r, rclip))
+    }
+
+    /// The composed soft methods (`softras`, `dibr`) for lit or textured scenes: the soft
+    /// rasterization stage ([`crate::soft::soft_fragments`]: every face within the cut-off of a
+    /// pixel, or its `faces_per_pixel` nearest), the scene's texture and shading per fragment
+    /// ([`Scene::shade_with`]), then the method's blend ([`crate::soft::softras_aggregate`]:
+    /// softmax over depth; [`crate::soft::dibr_aggregate`]: hard foreground, soft alpha).
+    fn render_soft<'t>(
+        &self,
+        vars: &SceneVars<'t, T>,
+        clip: Var<'t, T>,
+        kd: Var<'t, T>,
+    ) -> Result<Var<'t, T>, RenderError> {
+        let r = &self.desc.raster;
+        let (w, h) = (
+            self.desc.image.width as usize,
+            self.desc.image.height as usize,
+        );
+        let softras = r.method == Method::SoftRas;
+        let coverage = if softras {
+            Coverage::Sigmoid { sigma: r.sigma }
+        } else {
+            Coverage::Exp { delta: r.delta }
+        };
+        let mut st = SoftStageSettings::new(w, h, coverage);
+        st.threshold = r.threshold;
+        st.max_faces = r.faces_per_pixel.map(|k| k as usize);
+        st.perspective_correct = r.perspective_correct;
+        // SoftRas draws back faces too (as its fused op); DIB-R culls when asked.
+        st.cull_backfaces = !softras && r.cull_backfaces;
+        st.barycentric_derivatives = vars.texture.is_some();
+        let mut soft = None;
+        let (color, raster, _) = self.shade_with(vars, clip, kd, |c, faces| {
+            let sf = soft_fragments(c, faces, &st)?;
+            soft = Some((sf.prob, sf.inside));
+            Ok(sf.raster)
+        })?;
+        let (prob, inside) = soft.expect("drawn by the soft stage");
+        let sf = SoftFragments {
+            raster,
+            prob,
+            inside,
+        };
+        let bg = self.desc.image.background.to_vec();
+        if softras {
+            let proj = self.camera.projection();
+            let mut bs = SoftBlendSettings::new(proj.near(), proj.far());
+            bs.gamma = r.gamma;
+            bs.eps = r.eps;
+            bs.background = bg;
+            softras_aggregate(&sf, color, &bs)
+        } else {
+            dibr_aggregate(&sf, color, &bg)
+        }
     }
 }
 
