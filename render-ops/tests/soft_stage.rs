@@ -45,7 +45,7 @@ fn frag_weight(face: u32, pixel: usize, slot: usize) -> f64 {
     let mut x = (face as u64 + 1)
         .wrapping_mul(0x9e37_79b9_7f4a_7c15)
         .wrapping_add((pixel as u64 + 7).wrapping_mul(0xbf58_476d_1ce4_e5b9))
-        .wrapping_add(slot as u64 * 0x94d0_49bb_1331_11eb);
+        .wrapping_add((slot as u64).wrapping_mul(0x94d0_49bb_1331_11eb));
     x ^= x >> 31;
     x = x.wrapping_mul(0xd6e8_feb8_6659_fd53);
     x ^= x >> 29;
