@@ -303,15 +303,16 @@ fn composed_agrees_with_fused_on_vertex_colours() {
 /// supersampled hard render's loss (the seam sphere at 24 x 24, eight directions, f64, RGBA
 /// loss), measured by `cosines_vs_supersampled_fd`:
 ///
-/// | method | vertex colours (fused) | textured | Phong |
+/// | method | vertex colours (fused) | textured (composed) | Phong (composed) |
 /// |---|---|---|---|
-/// | softras | see the test output | | |
-/// | dibr | | | |
+/// | softras | 0.822 | 0.867 | 0.940 |
+/// | dibr | 0.898 | 0.936 | 0.962 |
 ///
-/// Asserted for the textured and Phong scenes: at least the vertex-colour figure measured in
-/// the same run, less [`SLACK`], and at least [`FLOOR`].
+/// Asserted for every scene: at least [`FLOOR`] (the vertex-colour figure less 0.02); for the
+/// composed (textured, Phong) scenes also at least the vertex-colour figure measured in the
+/// same run less [`SLACK`].
 const SLACK: f64 = 0.02;
-const FLOOR: [(&str, f64); 2] = [("softras", 0.8), ("dibr", 0.8)];
+const FLOOR: [(&str, f64); 2] = [("softras", 0.80), ("dibr", 0.878)];
 
 #[test]
 fn cosines_vs_supersampled_fd() {
@@ -382,8 +383,11 @@ fn cosines_vs_supersampled_fd() {
             let bound = vc[mi] - SLACK;
             assert!(cos > bound, "{kind:?} {method}: cosine {cos} <= {bound}");
         }
-        // Soft silhouettes: every silhouette vertex moves the coverage of nearby pixels.
-        assert_eq!(moving, n, "{kind:?} {method}: {moving} of {n}");
+        // SoftRas: every silhouette vertex moves the coverage of nearby pixels (measured 26 of
+        // 26); DIB-R's narrower cut-off (under half a pixel at its default delta) misses a few
+        // (measured 23 of 26 with vertex colours and textured, 26 Phong).
+        let least = if mi == 0 { n } else { (3 * n).div_ceil(4) };
+        assert!(moving >= least, "{kind:?} {method}: {moving} of {n}");
     }
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -528,7 +532,10 @@ fn closure_shader_through_softras_and_dibr() {
             .chunks(4)
             .filter(|px| px[3] > 1e-3 && px[3] < 1.0 - 1e-3)
             .count();
-        assert!(partial > 20, "{method}: {partial} partly covered pixels");
+        // SoftRas's cut-off is about 4 pixels wide here, DIB-R's under half a pixel
+        // (measured: 8 partly covered pixels).
+        let least = if method == "softras" { 20 } else { 5 };
+        assert!(partial > least, "{method}: {partial} partly covered pixels");
         let g = tape
             .backward((img * tape.constant(wts.clone())).sum())
             .unwrap()
@@ -541,7 +548,7 @@ fn closure_shader_through_softras_and_dibr() {
 }
 
 /// An inverse task: the pose (a translation and a rotation about y) of a textured mesh
-/// recovered from a target image through SoftRas's soft silhouettes, with Adam.
+/// recovered from a target image through SoftRas's soft silhouettes, with Adam (80 steps).
 #[test]
 fn textured_pose_fit_through_softras() {
     let dir = temp_dir("soft-pose");
@@ -574,7 +581,7 @@ fn textured_pose_fit_through_softras() {
     let mut adam = Adam::new(0.02);
     let mut first = None;
     let mut last = 0.0;
-    for _ in 0..40 {
+    for _ in 0..80 {
         let tape = Tape::new();
         let pv = tape.leaf(pose.clone());
         let base = tape.constant(positions_tensor(&mesh.positions));
@@ -608,7 +615,7 @@ fn textured_pose_fit_through_softras() {
         first.unwrap(),
         pose.as_slice().unwrap()
     );
-    assert!(last < 0.05 * first.unwrap(), "loss {last}");
+    assert!(last < 0.02 * first.unwrap(), "loss {last}");
     assert!(err < 0.03, "pose error {err}");
     std::fs::remove_dir_all(&dir).ok();
 }
