@@ -147,7 +147,10 @@ impl<T: Real> Scene<T> {
     /// boundary gradients, or for `deodr` that image's silhouette edges overdrawn with a ramp
     /// `overdraw_px` wide, differentiated exactly). Lit or textured scenes are shaded per
     /// fragment as by method `hard` and then go through the method's op of
-    /// [`crate::boundary`] over the shaded image. `tf_mesh` renders per-vertex colours only
+    /// [`crate::boundary`] over the shaded image. Methods `softras` and `dibr` over unlit,
+    /// untextured scenes use their fused ops of [`crate::soft`]; lit or textured scenes go
+    /// through the soft stage, per-fragment shading and the method's blend
+    /// ([`crate::soft::stage`]). `tf_mesh` renders per-vertex colours only
     /// (lighting evaluated at the vertices, see [`Scene::vertex_colors`]). Every method of
     /// [`Method::ALL`] is available.
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
