@@ -22,7 +22,9 @@ use render_ops::shade::{
     fragment_inputs, render_shader, sh_shade, shade, vertex_normals, FragmentInputs, Lights,
     Material, MeshAttributes,
 };
-use render_ops::soft::{soft_fragments, softras_aggregate, Coverage, SoftBlendSettings, SoftStageSettings};
+use render_ops::soft::{
+    soft_fragments, softras_aggregate, Coverage, SoftBlendSettings, SoftStageSettings,
+};
 use render_ops::texture::{mip_pyramid, sample, Filter, Sampler, Wrap};
 use render_ops::transform::to_clip;
 
@@ -406,14 +408,20 @@ fn soft_methods_shade_per_fragment_and_take_textures() {
     let proj = scene.camera.projection();
     let mut bs = SoftBlendSettings::new(proj.near(), proj.far());
     bs.background = vec![0.1, 0.2, 0.3];
-    let expect = softras_aggregate(&sf, colors, &bs).unwrap().value().unwrap();
+    let expect = softras_aggregate(&sf, colors, &bs)
+        .unwrap()
+        .value()
+        .unwrap();
     let d = max_diff(&img, &expect);
     assert!(d < 1e-12, "softras + phong: {d:e}");
     let unlit = render_scene(&scene_with(&dir, &mesh, None, "none", "softras", 32), false);
     assert!(max_diff(&img, &unlit) > 0.05);
     let tex = texture_image(4, 4, 1);
     for method in ["softras", "dibr"] {
-        let textured = render_scene(&scene_with(&dir, &mesh, Some(&tex), "none", method, 16), false);
+        let textured = render_scene(
+            &scene_with(&dir, &mesh, Some(&tex), "none", method, 16),
+            false,
+        );
         assert!(textured.iter().all(|x| x.is_finite()), "{method}");
     }
     let scene = scene_with(&dir, &mesh, Some(&tex), "none", "tf_mesh", 16);

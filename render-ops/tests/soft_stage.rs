@@ -102,7 +102,7 @@ fn gradcheck_fragment_stage() {
                     let others = tape.concat(&[d, vd, p], 1);
                     (sf.raster.bary * wb).sum() + (others * wd).sum()
                 },
-                &[clip.clone()],
+                std::slice::from_ref(&clip),
                 &opts,
             )
             .unwrap();
@@ -214,7 +214,7 @@ fn gradcheck_blend_ops() {
                 .unwrap();
                 (img * tape.constant(wts.clone())).sum()
             },
-            &[clip.clone()],
+            std::slice::from_ref(&clip),
             &opts,
         )
         .unwrap();
@@ -543,7 +543,10 @@ fn closure_shader_through_softras_and_dibr() {
         let rim_moving = (0..mesh.positions.len())
             .filter(|&v| mesh.positions[v][2].abs() < 0.2 && (0..3).any(|k| g[[v, k]] != 0.0))
             .count();
-        assert!(rim_moving > 10, "{method}: {rim_moving} rim vertices with a gradient");
+        assert!(
+            rim_moving > 10,
+            "{method}: {rim_moving} rim vertices with a gradient"
+        );
     }
 }
 
@@ -634,4 +637,37 @@ fn too_many_fragments_is_a_typed_error() {
     let msg = err.to_string();
     assert!(msg.contains("over the limit"), "{msg}");
     let _ = flat;
+}
+
+/// The composed path gives bit-identical images and gradients for any rayon thread count.
+#[test]
+fn composed_path_is_deterministic_across_thread_counts() {
+    let (clip, faces, pts) = ico(2);
+    let cols = smooth_colours(&pts);
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut out = Vec::new();
+            for coverage in COVERAGES {
+                let [(_, _, _), (img, gc, ga)] = {
+                    let method = match coverage {
+                        Coverage::Sigmoid { .. } => "softras",
+                        Coverage::Exp { .. } => "dibr",
+                    };
+                    fused_and_composed(method, &clip, &cols, &faces, 40)
+                };
+                out.push((img, gc, ga));
+            }
+            out
+        })
+    };
+    let (a, b) = (run(1), run(3));
+    for ((ia, ca, aa), (ib, cb, ab)) in a.iter().zip(&b) {
+        assert_eq!(ia, ib);
+        assert_eq!(ca, cb);
+        assert_eq!(aa, ab);
+    }
 }

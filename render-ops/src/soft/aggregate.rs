@@ -118,16 +118,22 @@ fn check<T: Real>(
     for v in per_fragment {
         let s = v.shape();
         if s != [n] {
-            return Err(
-                AutodiffError::shape(op, &[&s], format!("per-fragment values must be [{n}]"))
-                    .into(),
-            );
+            return Err(AutodiffError::shape(
+                op,
+                &[&s],
+                format!("per-fragment values must be [{n}]"),
+            )
+            .into());
         }
     }
     if !background.is_empty() && background.len() != cs[1] {
         return Err(AutodiffError::invalid(
             op,
-            format!("background has {} values for {} channels", background.len(), cs[1]),
+            format!(
+                "background has {} values for {} channels",
+                background.len(),
+                cs[1]
+            ),
         )
         .into());
     }
@@ -155,7 +161,13 @@ pub fn softras_blend<'t, T: Real>(
     eps: f64,
     background: &[f64],
 ) -> Result<Var<'t, T>, RenderError> {
-    let c = check("softras_blend", &colors, &[&prob, &zn], fragments, background)?;
+    let c = check(
+        "softras_blend",
+        &colors,
+        &[&prob, &zn],
+        fragments,
+        background,
+    )?;
     if !(gamma > 0.0 && gamma.is_finite() && eps.is_finite()) {
         return Err(AutodiffError::invalid(
             "softras_blend",
@@ -187,7 +199,11 @@ pub fn dibr_blend<'t, T: Real>(
     if inside.len() != fragments.len() {
         return Err(AutodiffError::invalid(
             "dibr_blend",
-            format!("{} inside flags for {} fragments", inside.len(), fragments.len()),
+            format!(
+                "{} inside flags for {} fragments",
+                inside.len(),
+                fragments.len()
+            ),
         )
         .into());
     }
@@ -281,8 +297,7 @@ fn image<T: Real>(f: &Fragments<T>, per: usize, pix: &[f64], c1: usize) -> Tenso
 }
 
 fn tensor<T: Real>(v: Vec<f64>, shape: &[usize]) -> Tensor<T> {
-    ArrayD::from_shape_vec(IxDyn(shape), v.into_iter().map(T::from_f64c).collect())
-        .expect("shape")
+    ArrayD::from_shape_vec(IxDyn(shape), v.into_iter().map(T::from_f64c).collect()).expect("shape")
 }
 
 struct SoftBlendOp<T: Real> {
@@ -376,7 +391,9 @@ impl<T: Real> Op<T> for SoftBlendOp<T> {
         let pick = |k: usize| -> Vec<f64> { g.chunks(c + 2).map(|r| r[k]).collect() };
         let gc = ctx.needs_grad[0].then(|| {
             tensor(
-                g.chunks(c + 2).flat_map(|r| r[..c].iter().copied()).collect(),
+                g.chunks(c + 2)
+                    .flat_map(|r| r[..c].iter().copied())
+                    .collect(),
                 &[n, c],
             )
         });
@@ -443,7 +460,9 @@ impl<T: Real> Op<T> for DibrBlendOp<T> {
         let n = f.len();
         let gc = ctx.needs_grad[0].then(|| {
             tensor(
-                g.chunks(c + 1).flat_map(|r| r[..c].iter().copied()).collect(),
+                g.chunks(c + 1)
+                    .flat_map(|r| r[..c].iter().copied())
+                    .collect(),
                 &[n, c],
             )
         });

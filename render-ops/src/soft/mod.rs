@@ -25,10 +25,10 @@ pub(crate) mod simd;
 pub mod softras;
 pub mod stage;
 
-pub use common::MAX_SOFT_BIN_ENTRIES;
-pub use dibr::{dibr, dibr_alpha, DibrSettings};
-pub use softras::{softras, SoftSettings};
 pub use aggregate::{
     dibr_aggregate, dibr_blend, softras_aggregate, softras_blend, SoftBlendSettings,
 };
+pub use common::MAX_SOFT_BIN_ENTRIES;
+pub use dibr::{dibr, dibr_alpha, DibrSettings};
+pub use softras::{softras, SoftSettings};
 pub use stage::{soft_fragments, Coverage, SoftFragments, SoftStageSettings, MAX_SOFT_FRAGMENTS};

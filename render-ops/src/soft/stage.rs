@@ -127,7 +127,10 @@ impl SoftStageSettings {
 
     fn validate(&self) -> Result<(), String> {
         if self.width == 0 || self.height == 0 {
-            return Err(format!("image size {}x{} is empty", self.width, self.height));
+            return Err(format!(
+                "image size {}x{} is empty",
+                self.width, self.height
+            ));
         }
         let sc = self.coverage.scale();
         if !(sc > 0.0 && sc.is_finite()) {
@@ -189,22 +192,15 @@ pub fn soft_fragments<'t, T: Real>(
     }
     let s = settings;
     let dmax = s.cutoff_sq().sqrt();
-    let pre = check_memory_projected(
-        OP,
-        &clip,
-        &faces,
-        s.width,
-        s.height,
-        dmax,
-        s.cull_backfaces,
-    )?;
+    let pre = check_memory_projected(OP, &clip, &faces, s.width, s.height, dmax, s.cull_backfaces)?;
     let cv = clip.value()?;
     let Projected { ndc, depth, rects } = match pre {
         Some(p) => p,
         None => {
             // Only reached for values the check leaves to the op (it refused the rest).
-            return Err(AutodiffError::shape(OP, &[cv.shape()], "clip positions must be [V, 4]")
-                .into());
+            return Err(
+                AutodiffError::shape(OP, &[cv.shape()], "clip positions must be [V, 4]").into(),
+            );
         }
     };
     // The pair bound: every face's expanded pixel box, or K per pixel.
@@ -531,12 +527,13 @@ impl<T: Real> Op<T> for StageOp<T> {
     fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
         let (f, prob) = (&self.fragments, &self.prob);
         let n = f.len();
-        let bary = ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.as_flattened().to_vec())
-            .expect("n x 3");
+        let bary =
+            ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.as_flattened().to_vec()).expect("n x 3");
         let depth = ArrayD::from_shape_vec(IxDyn(&[n]), f.depth.clone()).expect("n");
         let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), f.view_depth.clone()).expect("n");
-        let prob = ArrayD::from_shape_vec(IxDyn(&[n]), prob.iter().map(|&x| T::from_f64c(x)).collect())
-            .expect("n");
+        let prob =
+            ArrayD::from_shape_vec(IxDyn(&[n]), prob.iter().map(|&x| T::from_f64c(x)).collect())
+                .expect("n");
         Ok(vec![bary, depth, vdepth, prob])
     }
 
@@ -580,19 +577,28 @@ impl<T: Real> Op<T> for StageOp<T> {
                     let fi = f.face[i] as usize;
                     let (row, col) = (p / w, p % w);
                     let pc = [self.bins.px[col], self.bins.py[row]];
-                    let Some((q, d, inside)) =
-                        eval_pair(&self.bins, fi, pc, s, inv_scale, cut2)
+                    let Some((q, d, inside)) = eval_pair(&self.bins, fi, pc, s, inv_scale, cut2)
                     else {
                         continue;
                     };
-                    self.fragment_gradient(fi, pc, &q, d, inside, [gbi, [gd[i], gv[i], gp[i]]], acc);
+                    self.fragment_gradient(
+                        fi,
+                        pc,
+                        &q,
+                        d,
+                        inside,
+                        [gbi, [gd[i], gv[i], gp[i]]],
+                        acc,
+                    );
                 }
             });
         let nv = self.ndc.len();
         let mut g = vec![0.0f64; nv * 4];
         let ff = &f.face;
         scatter_face_corners(&mut g, 4, &self.faces, || {
-            ff.iter().zip(corner.chunks_exact(12)).map(|(&fi, c)| (fi, c))
+            ff.iter()
+                .zip(corner.chunks_exact(12))
+                .map(|(&fi, c)| (fi, c))
         });
         Ok(vec![Some(
             ArrayD::from_shape_vec(IxDyn(&[nv, 4]), g.into_iter().map(T::from_f64c).collect())

@@ -5,12 +5,12 @@
 use std::path::{Path, PathBuf};
 
 use autodiff::{Tape, Tensor, Var};
-use render_ops::shade::FragmentInputs;
 use ndarray::{ArrayD, IxDyn};
 use render_ops::mesh::Mesh;
 use render_ops::obj::write_obj;
 use render_ops::pipeline::Wrt;
 use render_ops::scene::Scene;
+use render_ops::shade::FragmentInputs;
 
 pub fn max_diff(a: &Tensor<f64>, b: &Tensor<f64>) -> f64 {
     a.iter()
@@ -28,7 +28,6 @@ pub fn cosine(a: &[f64], b: &[f64]) -> f64 {
 pub fn flat(t: &Tensor<f64>) -> Vec<f64> {
     t.iter().copied().collect()
 }
-
 
 /// A fresh temporary folder `tapestry-{name}-{pid}`.
 pub fn temp_dir(name: &str) -> PathBuf {
@@ -285,7 +284,6 @@ pub fn moved(pos: &Tensor<f64>, d: &[f64], h: f64) -> Tensor<f64> {
     p
 }
 
-
 /// The toon / rim shader of `examples/custom_shader.rs`: a two-tone diffuse term (a soft
 /// step at `threshold`) and a Fresnel rim of strength `rim`.
 pub fn toon_rim<'t>(
@@ -294,8 +292,7 @@ pub fn toon_rim<'t>(
     rim: Var<'t, f64>,
 ) -> Var<'t, f64> {
     let t = f.position.tape();
-    let vec3 =
-        |a: [f64; 3]| t.constant(ArrayD::from_shape_vec(IxDyn(&[3]), a.to_vec()).unwrap());
+    let vec3 = |a: [f64; 3]| t.constant(ArrayD::from_shape_vec(IxDyn(&[3]), a.to_vec()).unwrap());
     let to_light = vec3([-0.4, 0.6, 0.7]).normalize(1e-12);
     let ndl = (f.normal * to_light).sum_axes(&[-1], true);
     let step = ((ndl - threshold) * (1.0 / 0.08)).sigmoid();
