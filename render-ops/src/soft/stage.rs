@@ -390,20 +390,32 @@ fn build<T: Real>(
                     }
                 }
             }
-            // Per pixel, nearest first (view depth, then face); K nearest when asked.
-            recs.sort_by(|a, b| {
-                a.lp.cmp(&b.lp)
-                    .then(a.z.total_cmp(&b.z))
-                    .then(a.face.cmp(&b.face))
-            });
+            // Per pixel (a counting sort of indices by tile pixel), nearest first (view depth,
+            // then face) within each pixel's short list; K nearest when asked.
+            let mut start = [0u32; TILE * TILE + 1];
+            for r in &recs {
+                start[r.lp as usize + 1] += 1;
+            }
+            for lp in 0..TILE * TILE {
+                start[lp + 1] += start[lp];
+            }
+            let mut fill = start;
+            let mut order = vec![0u32; recs.len()];
+            for (i, r) in recs.iter().enumerate() {
+                order[fill[r.lp as usize] as usize] = i as u32;
+                fill[r.lp as usize] += 1;
+            }
             let mut count = vec![0u32; TILE * TILE];
             let mut kept = Vec::with_capacity(recs.len());
-            for r in recs {
-                let c = &mut count[r.lp as usize];
-                if s.max_faces.is_none_or(|k| (*c as usize) < k) {
-                    *c += 1;
-                    kept.push(r);
-                }
+            for lp in 0..TILE * TILE {
+                let idx = &mut order[start[lp] as usize..start[lp + 1] as usize];
+                idx.sort_unstable_by(|&a, &b| {
+                    let (a, b) = (&recs[a as usize], &recs[b as usize]);
+                    a.z.total_cmp(&b.z).then(a.face.cmp(&b.face))
+                });
+                let k = s.max_faces.map_or(idx.len(), |k| k.min(idx.len()));
+                count[lp] = k as u32;
+                kept.extend(idx[..k].iter().map(|&i| recs[i as usize]));
             }
             (kept, count)
         })
