@@ -219,9 +219,9 @@ fn render_phong_and_grad_wrt_texture_and_camera() {
             assert!(g.iter().filter(|&&v| v < 0.0).count() > 150, "{g:?}");
         }
     }
-    // The boundary methods over the textured, Phong-lit scene: render, and every --wrt.
+    // The boundary and soft methods over the textured, Phong-lit scene: render, and every --wrt.
     let json = std::fs::read_to_string(&scene).unwrap();
-    for method in ["opendr", "nmr", "deodr"] {
+    for method in ["opendr", "nmr", "deodr", "softras", "dibr"] {
         let sc = dir.join(format!("{method}.json"));
         std::fs::write(
             &sc,
@@ -240,7 +240,7 @@ fn render_phong_and_grad_wrt_texture_and_camera() {
             "{method}: {}",
             String::from_utf8_lossy(&out.stderr)
         );
-        for wrt in ["positions", "colors", "texture", "camera"] {
+        for wrt in ["positions", "colors", "texture", "camera", "lights"] {
             let g = dir.join(format!("g_{method}_{wrt}.npy"));
             let out = tapestry()
                 .arg("grad")

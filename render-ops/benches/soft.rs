@@ -4,6 +4,9 @@
 //! `sum((image - target)^2)` (the fused `Var::sum_squared_diff`, the target shared by the
 //! frames as the stand-in reuses its target tensor) with respect to positions and colours. SoftRas for
 //! sigma in {1e-3, 1e-4, 1e-5} (gamma 1e-4, threshold 1e-4), DIB-R at its default delta.
+//! `*_composed`: the same renders through the composed stages (`soft::soft_fragments`,
+//! `interpolate`, `soft::softras_aggregate` / `soft::dibr_aggregate`), against which the fused
+//! ops (chosen automatically for per-vertex colours) are compared in `docs/performance.md`.
 //! `scripts/bench-soft-peers.sh` runs this bench beside the PyTorch SoftRas stand-in.
 //!
 //! ```text
@@ -18,13 +21,22 @@ use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::{Tape, Tensor};
 use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use render_ops::soft::{dibr, softras, DibrSettings, SoftSettings};
+use render_ops::interpolate::interpolate;
+use render_ops::soft::{
+    dibr, dibr_aggregate, soft_fragments, softras, softras_aggregate, Coverage, DibrSettings,
+    SoftBlendSettings, SoftSettings, SoftStageSettings,
+};
 use render_ops::transform::to_clip;
 
 #[derive(Clone, Copy)]
 enum Method {
     SoftRas(f64),
     Dibr,
+    /// The composed path on the same per-vertex colours: `soft::soft_fragments`,
+    /// `interpolate`, `soft::softras_aggregate` (sigma).
+    SoftRasComposed(f64),
+    /// `soft::soft_fragments`, `interpolate`, `soft::dibr_aggregate`.
+    DibrComposed,
 }
 
 /// Renders (and optionally back-propagates) one frame; returns a value so the work is kept.
@@ -43,6 +55,20 @@ fn run(sc: &PeerScene, size: usize, method: Method, target: Option<&Arc<Tensor<f
             softras(clip, c, sc.faces.clone(), &s).unwrap()
         }
         Method::Dibr => dibr(clip, c, sc.faces.clone(), &DibrSettings::new(size, size)).unwrap(),
+        Method::SoftRasComposed(sigma) => {
+            let st = SoftStageSettings::new(size, size, Coverage::Sigmoid { sigma });
+            let sf = soft_fragments(clip, sc.faces.clone(), &st).unwrap();
+            let mut bs = SoftBlendSettings::new(1.0, 100.0);
+            bs.gamma = 1e-4;
+            softras_aggregate(&sf, interpolate(c, &sf.raster).unwrap(), &bs).unwrap()
+        }
+        Method::DibrComposed => {
+            let d = DibrSettings::new(size, size);
+            let mut st = SoftStageSettings::new(size, size, Coverage::Exp { delta: d.delta });
+            st.perspective_correct = d.perspective_correct;
+            let sf = soft_fragments(clip, sc.faces.clone(), &st).unwrap();
+            dibr_aggregate(&sf, interpolate(c, &sf.raster).unwrap(), &[]).unwrap()
+        }
     };
     if let Some(target) = target {
         let loss = img.sum_squared_diff(tape.var_shared(target.clone(), false));
@@ -67,6 +93,8 @@ fn bench_soft(c: &mut Criterion) {
                 ("softras_sigma1e-4", Method::SoftRas(1e-4)),
                 ("softras_sigma1e-5", Method::SoftRas(1e-5)),
                 ("dibr", Method::Dibr),
+                ("softras_sigma1e-4_composed", Method::SoftRasComposed(1e-4)),
+                ("dibr_composed", Method::DibrComposed),
             ];
             if subdiv == 6 && size == 512 {
                 // sigma 1e-3 at 512 x 512: the cut-off radius is 25 px, i.e. ~2000 pixels per

@@ -9,15 +9,15 @@
 //! * [`render_fragments`]: any per-fragment shader (interpolated attributes, textures,
 //!   lighting, a user's closure) composed with the method's visibility stage: rasterize (for
 //!   `tf_mesh` with its silhouette band of extrapolated fragments), the shader, the hard blend,
-//!   then the method's boundary op or soft alpha.
+//!   then the method's boundary op; or for the soft methods the soft stage's fragments within
+//!   the cut-off ([`soft::soft_fragments`]), the shader, and the method's blend.
 //!
 //! The scene pipeline ([`crate::pipeline`]), `models::fit` and `tapestry bench` dispatch on the
 //! method only here. To add a method: a [`Method`] variant (scene.rs), its [`MethodInfo`] in
 //! [`Method::info`], and its arms in the two entry points.
 //!
-//! The composed soft stage (per-fragment shading aggregated by SoftRas's softmax) plugs in at
-//! [`soft_fragments`]; until it exists, `softras` renders per-vertex colours only
-//! ([`MethodInfo::composes`] is false) and callers shade at the vertices for it.
+//! Every method composes today ([`MethodInfo::composes`]); the flag is the registry's contract
+//! for a method that takes per-vertex colours only, which callers then shade at the vertices.
 
 use std::sync::Arc;
 
@@ -30,7 +30,7 @@ use crate::error::RenderError;
 use crate::raster::RasterSettings;
 use crate::rasterize::{rasterize, render_attributes, Rasterized};
 use crate::scene::{Method, Raster};
-use crate::soft::{self, DibrSettings, SoftSettings};
+use crate::soft::{self, Coverage, DibrSettings, SoftBlendSettings, SoftSettings, SoftStageSettings};
 
 /// How a method decides visibility and where its position gradients come from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -111,7 +111,7 @@ impl Method {
             Method::SoftRas => (
                 Kind::Soft,
                 e(true, true, true),
-                false,
+                true,
                 "Liu et al., ICCV 2019 (Soft Rasterizer)",
             ),
             Method::Dibr => (
@@ -185,6 +185,9 @@ pub struct MethodSettings {
     pub view: ViewSettings,
     /// Fragments kept per pixel by the hard rasterizer (`hard`; the others draw the nearest).
     pub faces_per_pixel: usize,
+    /// Fragments the soft stage keeps per pixel, nearest first (`None`: every face within the
+    /// cut-off; the scene's `faces_per_pixel` for `softras` and `dibr`).
+    pub soft_faces_per_pixel: Option<usize>,
     /// Screen-space barycentric derivatives (for texture filtering).
     pub barycentric_derivatives: bool,
     /// SoftRas sigma (squared NDC units).
@@ -227,6 +230,7 @@ impl MethodSettings {
                 ..view
             },
             faces_per_pixel: r.effective_faces_per_pixel().unwrap_or(1) as usize,
+            soft_faces_per_pixel: r.faces_per_pixel.map(|k| k as usize),
             barycentric_derivatives: false,
             sigma: r.sigma,
             gamma: r.gamma,
@@ -281,6 +285,36 @@ impl MethodSettings {
             background: v.background.clone(),
             perspective_correct: v.perspective_correct,
             ..SoftSettings::new(v.width, v.height, self.near, self.far)
+        }
+    }
+
+    /// The soft stage's settings for `softras` (sigmoid coverage, no culling, as SoftRas) or
+    /// `dibr` (exponential coverage, culling as set).
+    pub fn soft_stage(&self) -> SoftStageSettings {
+        let v = &self.view;
+        let softras = self.method == Method::SoftRas;
+        let coverage = if softras {
+            Coverage::Sigmoid { sigma: self.sigma }
+        } else {
+            Coverage::Exp { delta: self.delta }
+        };
+        SoftStageSettings {
+            threshold: self.threshold,
+            max_faces: self.soft_faces_per_pixel,
+            perspective_correct: v.perspective_correct,
+            cull_backfaces: !softras && v.cull_backfaces,
+            barycentric_derivatives: self.barycentric_derivatives,
+            ..SoftStageSettings::new(v.width, v.height, coverage)
+        }
+    }
+
+    /// SoftRas's blend over the soft stage's fragments.
+    pub fn soft_blend(&self) -> SoftBlendSettings {
+        SoftBlendSettings {
+            gamma: self.gamma,
+            eps: self.eps,
+            background: self.view.background.clone(),
+            ..SoftBlendSettings::new(self.near, self.far)
         }
     }
 
@@ -351,8 +385,11 @@ pub type FragmentShader<'a, 't, T> =
 /// * `tf_mesh`: [`approx::tf_mesh::rasterize_extrapolated`], the shader on the hard
 ///   fragments and on the silhouette band, [`approx::tf_mesh::blend_band`].
 /// * `opendr`, `nmr`, `deodr`: the hard image, then the method's op of [`crate::boundary`].
-/// * `dibr`: the hard image's colours with DIB-R's soft alpha.
-/// * `softras`: [`soft_fragments`] (not built yet: an `Unsupported` error).
+/// * `softras`, `dibr`: the soft stage ([`soft::soft_fragments`]: every face within the
+///   cut-off, or the nearest K, with coverage probabilities and clipped barycentrics), the
+///   shader on those fragments, and SoftRas's softmax over depth
+///   ([`soft::softras_aggregate`]) or DIB-R's nearest covering fragment over the soft
+///   silhouette ([`soft::dibr_aggregate`]).
 ///
 /// # Errors
 /// The ops' and the shader's errors; `Unsupported` for a method whose
@@ -395,27 +432,14 @@ pub fn render_fragments<'t, T: Real>(
             let (image, r) = hard(shader)?;
             boundary::deodr(image, &r, clip, &s.boundary())
         }
-        Method::Dibr => {
-            let (image, _) = hard(shader)?;
-            let alpha = soft::dibr_alpha(clip, faces, &s.dibr())?;
-            soft::dibr::composite(image, alpha)
+        Method::SoftRas | Method::Dibr => {
+            let frags = soft::soft_fragments(clip, faces, &s.soft_stage())?;
+            let col = shader(&frags.raster)?;
+            if s.method == Method::SoftRas {
+                soft::softras_aggregate(&frags, col, &s.soft_blend())
+            } else {
+                soft::dibr_aggregate(&frags, col, &s.view.background)
+            }
         }
-        Method::SoftRas => soft_fragments(clip, faces, s, shader),
     }
-}
-
-/// The composed soft stage: per-pixel fragments within the cut-off, shaded by `shader`, and
-/// the method's aggregation. This is where SoftRas's per-fragment path plugs in; it is not
-/// built yet, so `softras` takes per-vertex colours ([`render_vertex_colors`]).
-fn soft_fragments<'t, T: Real>(
-    _clip: Var<'t, T>,
-    _faces: Arc<Vec<[u32; 3]>>,
-    s: &MethodSettings,
-    _shader: &mut FragmentShader<'_, 't, T>,
-) -> Result<Var<'t, T>, RenderError> {
-    Err(RenderError::Unsupported(format!(
-        "raster.method '{}' has no per-fragment (composed) shading yet: it renders per-vertex \
-         colours",
-        s.method.name()
-    )))
 }

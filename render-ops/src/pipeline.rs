@@ -148,10 +148,11 @@ impl<T: Real> Scene<T> {
     /// ([`render_vertex_colors`]). Lit or textured scenes are shaded per fragment (texture,
     /// per-pixel lighting) and composed with the method's visibility stage
     /// ([`render_fragments`]: the hard blend, `tf_mesh`'s extrapolated silhouette band, the
-    /// boundary ops of [`crate::boundary`], DIB-R's soft alpha). A method without a composed
-    /// path (`softras`, [`crate::methods::MethodInfo::composes`]) renders the scene's lighting
-    /// evaluated at the vertices ([`Scene::vertex_colors`]) and refuses textures. Every method
-    /// of [`crate::scene::Method::ALL`] is available.
+    /// boundary ops of [`crate::boundary`], or the soft stage's fragments within the cut-off
+    /// and SoftRas's or DIB-R's blend). A method without a composed path
+    /// ([`crate::methods::MethodInfo::composes`]; none today) would render the scene's
+    /// lighting evaluated at the vertices ([`Scene::vertex_colors`]) and refuse textures. Every
+    /// method of [`crate::scene::Method::ALL`] is available.
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
         // NaN or Inf in an input would otherwise reach the image silently (colours), be
         // skipped (soft methods) or be reported as a clip coordinate: name the input.
@@ -248,9 +249,8 @@ impl<T: Real> Scene<T> {
     ) -> Result<Var<'t, T>, RenderError> {
         if vars.texture.is_some() {
             return Err(RenderError::Unsupported(format!(
-                "textures are sampled per fragment: raster.method '{}' takes per-vertex \
-                 colours; use method 'hard', 'tf_mesh', 'opendr', 'nmr', 'deodr' or 'dibr' for \
-                 textured scenes",
+                "textures are sampled per fragment: per-vertex colours of raster.method '{}' \
+                 cannot carry one (render the scene, which shades textured scenes per fragment)",
                 self.desc.raster.method.name()
             )));
         }

@@ -10,13 +10,16 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use autodiff::gradcheck::{gradcheck, GradcheckOptions, Mode};
 use autodiff::optim::Adam;
 use autodiff::rng::Rng;
 use autodiff::{Real, Tape, Tensor, Var};
+use common::scenes::{
+    cosine, directions, flat, image_at, max_diff, moved, position_grad, positions_tensor, scene,
+    seam_sphere, silhouette_vertices, supersampled, temp_dir, toon_rim, Kind,
+};
 use common::{perspective_clip, smooth_colours, weights};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
@@ -26,12 +29,10 @@ use render_ops::boundary::{self, BoundarySettings};
 use render_ops::camera::Camera;
 use render_ops::interpolate::interpolate;
 use render_ops::mesh::Mesh;
-use render_ops::obj::write_obj;
 use render_ops::pipeline::Wrt;
 use render_ops::raster::RasterSettings;
 use render_ops::rasterize::{rasterize, Rasterized};
-use render_ops::scene::Scene;
-use render_ops::shade::{render_shader, FragmentInputs, MeshAttributes};
+use render_ops::shade::{render_shader, MeshAttributes};
 use render_ops::transform::to_clip;
 
 const METHODS: [&str; 3] = ["opendr", "nmr", "deodr"];
@@ -146,23 +147,6 @@ fn fused_and_composed(
     [run(true), run(false)]
 }
 
-fn max_diff(a: &Tensor<f64>, b: &Tensor<f64>) -> f64 {
-    a.iter()
-        .zip(b.iter())
-        .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
-}
-
-fn cosine(a: &[f64], b: &[f64]) -> f64 {
-    let dot: f64 = a.iter().zip(b).map(|(x, y)| x * y).sum();
-    let na: f64 = a.iter().map(|x| x * x).sum::<f64>().sqrt();
-    let nb: f64 = b.iter().map(|x| x * x).sum::<f64>().sqrt();
-    dot / (na * nb)
-}
-
-fn flat(t: &Tensor<f64>) -> Vec<f64> {
-    t.iter().copied().collect()
-}
-
 /// Composed and fused paths agree on per-vertex colours (icosphere(2), 40 x 40, f64). With one
 /// colour for all vertices the colour a face shows at its edge is the colour of its pixels, and
 /// the two paths give the same image and gradients to rounding (measured 2e-16 and 5e-15,
@@ -225,251 +209,6 @@ fn composed_agrees_with_fused_on_vertex_colours() {
     }
 }
 
-// ---------------------------------------------------------------------------------------------
-// Scenes through `Scene::render`.
-
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("tapestry-boundary-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-/// A latitude-longitude sphere of radius `r` with a uv seam (seam vertices share positions and
-/// have two uvs), per-vertex colours; counter-clockwise seen from outside.
-fn seam_sphere(nlat: usize, nlon: usize, r: f64) -> Mesh<f64> {
-    use std::f64::consts::{PI, TAU};
-    let mut positions = vec![[0.0, r, 0.0]];
-    for i in 1..nlat {
-        let th = PI * i as f64 / nlat as f64;
-        for j in 0..nlon {
-            let ph = TAU * j as f64 / nlon as f64;
-            positions.push([
-                r * th.sin() * ph.sin(),
-                r * th.cos(),
-                r * th.sin() * ph.cos(),
-            ]);
-        }
-    }
-    positions.push([0.0, -r, 0.0]);
-    let colors = positions
-        .iter()
-        .map(|p| [0.7 + 0.2 * p[0], 0.6 + 0.3 * p[1], 0.8 - 0.2 * p[2]])
-        .collect();
-    let last = positions.len() as u32 - 1;
-    let pid = |i: usize, j: usize| -> u32 {
-        if i == 0 {
-            0
-        } else if i == nlat {
-            last
-        } else {
-            (1 + (i - 1) * nlon + j % nlon) as u32
-        }
-    };
-    let mut uvs = Vec::new();
-    for i in 0..=nlat {
-        for j in 0..=nlon {
-            uvs.push([j as f64 / nlon as f64, 1.0 - i as f64 / nlat as f64]);
-        }
-    }
-    let tid = |i: usize, j: usize| (i * (nlon + 1) + j) as u32;
-    let (mut faces, mut uv_faces) = (Vec::new(), Vec::new());
-    for i in 0..nlat {
-        for j in 0..nlon {
-            for q in [
-                [(i, j), (i + 1, j), (i + 1, j + 1)],
-                [(i, j), (i + 1, j + 1), (i, j + 1)],
-            ] {
-                let f = q.map(|(a, b)| pid(a, b));
-                if f[0] == f[1] || f[1] == f[2] || f[0] == f[2] {
-                    continue;
-                }
-                faces.push(f);
-                uv_faces.push(q.map(|(a, b)| tid(a, b)));
-            }
-        }
-    }
-    Mesh {
-        positions,
-        faces,
-        uvs,
-        uv_faces,
-        normals: Vec::new(),
-        normal_faces: Vec::new(),
-        colors,
-    }
-}
-
-/// A smooth texture (stripes and a checker of low frequency, values on the 8-bit grid).
-fn texture_image(h: usize, w: usize) -> ndarray::Array3<f64> {
-    ndarray::Array3::from_shape_fn((h, w, 3), |(r, c, ch)| {
-        let (u, v) = (c as f64 / w as f64, r as f64 / h as f64);
-        let x = 0.55
-            + 0.35
-                * (std::f64::consts::TAU * (2.0 * u + ch as f64 * 0.3)).sin()
-                * (std::f64::consts::PI * (3.0 * v)).cos();
-        (x * 255.0).round() / 255.0
-    })
-}
-
-/// The kinds of scene of the tests: per-vertex colours (the fused path), textured, per-pixel
-/// Phong-lit.
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum Kind {
-    VertexColours,
-    Textured,
-    Phong,
-}
-
-/// Writes the mesh (and texture) to `dir` and loads a scene.
-fn scene(dir: &Path, mesh: &Mesh<f64>, kind: Kind, method: &str, size: usize) -> Scene<f64> {
-    write_obj(dir.join("m.obj"), mesh).unwrap();
-    let tex = if kind == Kind::Textured {
-        let p = dir.join("tex.png");
-        if !p.exists() {
-            render_ops::io::write_png(&p, &texture_image(32, 64)).unwrap();
-        }
-        "\"tex.png\""
-    } else {
-        "null"
-    };
-    let shading = if kind == Kind::Phong { "phong" } else { "none" };
-    let json = format!(
-        r#"{{"mesh": "m.obj", "texture": {tex},
-        "camera": {{"eye": [0.6, 0.8, 3.2], "at": [0, 0, 0], "up": [0, 1, 0], "fov_y_deg": 40,
-                   "near": 0.5, "far": 10}},
-        "image": {{"width": {size}, "height": {size}, "background": [0.1, 0.2, 0.3]}},
-        "lights": [{{"type": "directional", "direction": [-0.4, -0.5, -1], "color": [1, 0.9, 0.8]}},
-                   {{"type": "point", "position": [2, 1, 3], "color": [0.3, 0.3, 0.4]}},
-                   {{"type": "ambient", "color": [0.15, 0.15, 0.15]}}],
-        "material": {{"shading": "{shading}", "kd": [0.9, 0.8, 0.7], "ks": [0.4, 0.4, 0.4],
-                     "shininess": 20}},
-        "raster": {{"method": "{method}"}}}}"#
-    );
-    Scene::from_json(&json, dir, "test.json").unwrap()
-}
-
-fn positions_tensor(p: &[[f64; 3]]) -> Tensor<f64> {
-    ArrayD::from_shape_vec(IxDyn(&[p.len(), 3]), p.iter().flatten().copied().collect()).unwrap()
-}
-
-/// The scene's image at vertex positions `pos`.
-fn image_at(sc: &Scene<f64>, pos: &Tensor<f64>) -> Tensor<f64> {
-    let tape = Tape::new();
-    let mut vars = sc.vars(&tape, Wrt::default());
-    vars.positions = tape.constant(pos.clone());
-    sc.render(&vars).unwrap().value().unwrap().as_ref().clone()
-}
-
-/// The hard render of `big` (the scene at `n * ss` pixels) box-filtered to `n x n`.
-fn supersampled(big: &Scene<f64>, pos: &Tensor<f64>, n: usize, ss: usize) -> Vec<f64> {
-    let img = image_at(big, pos);
-    let mut out = vec![0.0; n * n * 4];
-    let scale = 1.0 / (ss * ss) as f64;
-    for (i, v) in img.iter().enumerate() {
-        let (p, ch) = (i / 4, i % 4);
-        let (row, col) = (p / (n * ss), p % (n * ss));
-        out[((row / ss) * n + col / ss) * 4 + ch] += scale * v;
-    }
-    out
-}
-
-/// `d/dpositions` of `sum (render - target)^2`.
-fn position_grad(sc: &Scene<f64>, pos: &Tensor<f64>, target: &[f64]) -> Tensor<f64> {
-    let tape = Tape::new();
-    let mut vars = sc.vars(&tape, Wrt::default());
-    vars.positions = tape.leaf(pos.clone());
-    let img = sc.render(&vars).unwrap();
-    let t = ArrayD::from_shape_vec(IxDyn(img.shape().as_slice()), target.to_vec()).unwrap();
-    let loss = (img - tape.constant(t)).square().sum();
-    tape.backward(loss).unwrap().wrt(vars.positions)
-}
-
-/// Directions of vertex motion `[V, 3]`: the six rigid motions (translations, rotations about
-/// the axes through the origin) and two smooth deformations.
-fn directions(pts: &[[f64; 3]]) -> Vec<Vec<f64>> {
-    let mut out = Vec::new();
-    for k in 0..3 {
-        out.push(
-            pts.iter()
-                .flat_map(|_| {
-                    let mut d = [0.0; 3];
-                    d[k] = 1.0;
-                    d
-                })
-                .collect(),
-        );
-        out.push(
-            pts.iter()
-                .flat_map(|p| {
-                    let mut a = [0.0; 3];
-                    a[k] = 1.0;
-                    [
-                        a[1] * p[2] - a[2] * p[1],
-                        a[2] * p[0] - a[0] * p[2],
-                        a[0] * p[1] - a[1] * p[0],
-                    ]
-                })
-                .collect(),
-        );
-    }
-    for ph in [0.3, 1.7] {
-        out.push(
-            pts.iter()
-                .flat_map(|p| {
-                    let s = 0.5 * (2.0 * p[0] + 3.0 * p[1] + ph).sin();
-                    [s * p[0], s * p[1], s * p[2]]
-                })
-                .collect(),
-        );
-    }
-    out
-}
-
-/// The vertices of the edges between a face turned towards `eye` and one turned away.
-fn silhouette_vertices(mesh: &Mesh<f64>, eye: [f64; 3]) -> Vec<usize> {
-    let p = &mesh.positions;
-    let towards: Vec<bool> = mesh
-        .faces
-        .iter()
-        .map(|f| {
-            let [a, b, c] = f.map(|i| p[i as usize]);
-            let (u, v) = (
-                [0, 1, 2].map(|k| b[k] - a[k]),
-                [0, 1, 2].map(|k| c[k] - a[k]),
-            );
-            let n = [
-                u[1] * v[2] - u[2] * v[1],
-                u[2] * v[0] - u[0] * v[2],
-                u[0] * v[1] - u[1] * v[0],
-            ];
-            (0..3).map(|k| n[k] * (eye[k] - a[k])).sum::<f64>() > 0.0
-        })
-        .collect();
-    let mut edges: std::collections::BTreeMap<(u32, u32), Vec<bool>> = Default::default();
-    for (f, &t) in mesh.faces.iter().zip(&towards) {
-        for k in 0..3 {
-            let (a, b) = (f[k], f[(k + 1) % 3]);
-            edges.entry((a.min(b), a.max(b))).or_default().push(t);
-        }
-    }
-    let mut out: Vec<usize> = edges
-        .iter()
-        .filter(|(_, t)| t.iter().any(|&x| x) && t.iter().any(|&x| !x))
-        .flat_map(|(&(a, b), _)| [a as usize, b as usize])
-        .collect();
-    out.sort_unstable();
-    out.dedup();
-    out
-}
-
-fn moved(pos: &Tensor<f64>, d: &[f64], h: f64) -> Tensor<f64> {
-    let mut p = pos.clone();
-    for (x, dx) in p.iter_mut().zip(d) {
-        *x += h * dx;
-    }
-    p
-}
-
 /// Cosines between each method's directional derivatives of the position gradient and those
 /// of the 16 x 16 supersampled hard render's loss (`cosines_vs_supersampled_fd`: the seam
 /// sphere at 24 x 24, eight directions; f64):
@@ -496,7 +235,7 @@ const SLACK: f64 = 0.02;
 /// version reaches on the same geometry; silhouette vertices get non-zero gradients.
 #[test]
 fn cosines_vs_supersampled_fd() {
-    let dir = temp_dir("cosine");
+    let dir = temp_dir("boundary-cosine");
     let mesh = seam_sphere(10, 16, 0.8);
     let (n, ss, h) = (24, 16, 0.03);
     let pos = positions_tensor(&mesh.positions);
@@ -575,7 +314,7 @@ fn cosines_vs_supersampled_fd() {
 /// are exact: the image is linear in them (f64 finite differences, random directions).
 #[test]
 fn texel_and_colour_gradients_are_exact() {
-    let dir = temp_dir("texels");
+    let dir = temp_dir("boundary-texels");
     let mesh = seam_sphere(6, 10, 0.8);
     for method in SCENE_METHODS {
         let sc = scene(&dir, &mesh, Kind::Textured, method, 20);
@@ -615,22 +354,6 @@ fn texel_and_colour_gradients_are_exact() {
 /// silhouette is antialiased, and the rim vertices get position gradients.
 #[test]
 fn closure_shader_through_deodr() {
-    fn toon_rim<'t>(
-        f: &FragmentInputs<'t, f64>,
-        threshold: Var<'t, f64>,
-        rim: Var<'t, f64>,
-    ) -> Var<'t, f64> {
-        let t = f.position.tape();
-        let vec3 =
-            |a: [f64; 3]| t.constant(ArrayD::from_shape_vec(IxDyn(&[3]), a.to_vec()).unwrap());
-        let to_light = vec3([-0.4, 0.6, 0.7]).normalize(1e-12);
-        let ndl = (f.normal * to_light).sum_axes(&[-1], true);
-        let step = ((ndl - threshold) * (1.0 / 0.08)).sigmoid();
-        let diffuse = vec3([0.9, 0.45, 0.3]) * (step * 0.75 + 0.2);
-        let ndv = (f.normal * f.view_dir).sum_axes(&[-1], true);
-        let fresnel = (-ndv + 1.0).relu().powf(5.0) * 0.96 + 0.04;
-        diffuse + fresnel * rim * vec3([0.3, 0.6, 1.0])
-    }
     let cam = Camera::perspective_look_at(
         [0.0, 0.2, 3.0],
         [0.0; 3],
@@ -718,7 +441,7 @@ fn closure_shader_through_deodr() {
 /// recovered from target images through `deodr`'s silhouette gradients, with Adam.
 #[test]
 fn textured_pose_fit_through_silhouettes() {
-    let dir = temp_dir("pose");
+    let dir = temp_dir("boundary-pose");
     let mesh = seam_sphere(8, 12, 0.7);
     let size = 32;
     let sc = scene(&dir, &mesh, Kind::Textured, "deodr", size);

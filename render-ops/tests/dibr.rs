@@ -358,7 +358,7 @@ fn temp_dir(name: &str) -> PathBuf {
 }
 
 /// Through `Scene::render`: method `dibr` gives the RGB of method `hard` (Phong shading per
-/// fragment) and an alpha that is 1 on covered pixels and soft around them, with finite,
+/// fragment, through the composed soft stage; to rounding) and an alpha that is 1 on covered pixels and soft around them, with finite,
 /// non-zero position gradients.
 #[test]
 fn scene_dibr_matches_scene_hard() {
@@ -396,8 +396,11 @@ fn scene_dibr_matches_scene_hard() {
     let mut halo = 0;
     for row in 0..36 {
         for col in 0..40 {
+            // The lit scene goes through the soft stage, whose perspective-correct
+            // barycentrics are computed in another order than the hard rasterizer's.
             for ch in 0..3 {
-                assert_eq!(si[[row, col, ch]], hi[[row, col, ch]]);
+                let d = (si[[row, col, ch]] - hi[[row, col, ch]]).abs();
+                assert!(d < 1e-12, "({row}, {col}, {ch}): {d:e}");
             }
             if hi[[row, col, 3]] == 1.0 {
                 assert_eq!(si[[row, col, 3]], 1.0);

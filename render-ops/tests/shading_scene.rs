@@ -19,10 +19,12 @@ use render_ops::raster::RasterSettings;
 use render_ops::rasterize::rasterize;
 use render_ops::scene::Scene;
 use render_ops::shade::{
-    render_shader, sh_shade, shade, vertex_normals, FragmentInputs, Lights, Material,
-    MeshAttributes,
+    fragment_inputs, render_shader, sh_shade, shade, vertex_normals, FragmentInputs, Lights,
+    Material, MeshAttributes,
 };
-use render_ops::soft::{softras, SoftSettings};
+use render_ops::soft::{
+    soft_fragments, softras_aggregate, Coverage, SoftBlendSettings, SoftStageSettings,
+};
 use render_ops::texture::{mip_pyramid, sample, Filter, Sampler, Wrap};
 use render_ops::transform::to_clip;
 
@@ -376,35 +378,37 @@ fn textured_scene_gradcheck_positions_texels_camera() {
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 
+/// A lit softras scene is shaded per fragment through the soft stage
+/// (`render_ops::soft::soft_fragments`, the built-in shading on the fragments,
+/// `softras_aggregate`): the same image as those ops composed by hand. A textured softras scene
+/// renders; a texture with the per-vertex method `tf_mesh` is a typed error naming the way out.
 #[test]
-fn soft_methods_shade_per_vertex_and_reject_textures() {
+fn soft_methods_shade_per_fragment_and_take_textures() {
     let dir = temp_dir("soft");
     let mesh = seam_sphere(8, 12);
     let scene = scene_with(&dir, &mesh, None, "phong", "softras", 32);
     let img = render_scene(&scene, false);
-    // Gouraud: the scene's lighting evaluated at the vertices, then SoftRas.
     let tape = Tape::new();
     let pos = tape.constant(rows(&mesh.positions));
     let faces = Arc::new(mesh.faces.clone());
-    let albedo = tape.constant(rows(&mesh.colors)) * tape.constant(t(&[3], vec![0.9, 0.8, 0.7]));
+    let r = &scene.desc.raster;
+    let mut st = SoftStageSettings::new(32, 32, Coverage::Sigmoid { sigma: r.sigma });
+    st.perspective_correct = r.perspective_correct;
+    let clip = to_clip(pos, &scene.camera.view_proj());
+    let sf = soft_fragments(clip, faces.clone(), &st).unwrap();
+    let attrs = MeshAttributes::new(pos)
+        .with_normals(vertex_normals(pos, &faces))
+        .with_attribute("color", tape.constant(rows(&mesh.colors)));
+    let eye = tape.constant(t(&[3], vec![0.6, 0.8, 3.2]));
+    let f = fragment_inputs(&sf.raster, &attrs, eye).unwrap();
+    let albedo = f.attribute("color").unwrap() * tape.constant(t(&[3], vec![0.9, 0.8, 0.7]));
     let lights = Lights::from_scene(&tape, &scene.desc.lights);
     let m = Material::from_scene(&tape, &scene.desc.material).unwrap();
-    let surf = render_ops::shade::Surface {
-        position: pos,
-        normal: vertex_normals(pos, &faces),
-        albedo,
-    };
-    let colors = shade(
-        &surf,
-        &m,
-        &lights,
-        tape.constant(t(&[3], vec![0.6, 0.8, 3.2])),
-    );
+    let colors = shade(&f.surface(albedo), &m, &lights, eye);
     let proj = scene.camera.projection();
-    let mut s = SoftSettings::new(32, 32, proj.near(), proj.far());
-    s.background = vec![0.1, 0.2, 0.3];
-    s.perspective_correct = scene.desc.raster.perspective_correct;
-    let expect = softras(to_clip(pos, &scene.camera.view_proj()), colors, faces, &s)
+    let mut bs = SoftBlendSettings::new(proj.near(), proj.far());
+    bs.background = vec![0.1, 0.2, 0.3];
+    let expect = softras_aggregate(&sf, colors, &bs)
         .unwrap()
         .value()
         .unwrap();
@@ -412,9 +416,15 @@ fn soft_methods_shade_per_vertex_and_reject_textures() {
     assert!(d < 1e-12, "softras + phong: {d:e}");
     let unlit = render_scene(&scene_with(&dir, &mesh, None, "none", "softras", 32), false);
     assert!(max_diff(&img, &unlit) > 0.05);
-    // A texture with a per-vertex method: a typed error naming the way out.
     let tex = texture_image(4, 4, 1);
-    let scene = scene_with(&dir, &mesh, Some(&tex), "none", "softras", 16);
+    for method in ["softras", "dibr"] {
+        let textured = render_scene(
+            &scene_with(&dir, &mesh, Some(&tex), "none", method, 16),
+            false,
+        );
+        assert!(textured.iter().all(|x| x.is_finite()), "{method}");
+    }
+    let scene = scene_with(&dir, &mesh, Some(&tex), "none", "tf_mesh", 16);
     let tape = Tape::new();
     let vars = scene.vars(&tape, Wrt::default());
     match scene.render(&vars) {

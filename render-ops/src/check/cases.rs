@@ -8,6 +8,9 @@
 //!   differences of the method's own image, which these backwards differentiate exactly (hard:
 //!   interior; deodr: the overdrawn image; softras, dibr: smooth images, here with wide
 //!   `sigma`/`delta` so that the 10-pixel image is smooth at the finite-difference step).
+//! - `method/softras/composed`, `method/dibr/composed`: the soft stage
+//!   ([`crate::soft::soft_fragments`]), per-fragment interpolation and the method's blend op
+//!   ([`crate::soft::aggregate`]), positions and colours against central differences.
 //! - `method/tf_mesh/colors`, `method/opendr/colors`, `method/nmr/colors`: their colour
 //!   gradient is the hard image's, exact.
 //! - `method/tf_mesh/reference`, `method/opendr/reference`, `method/nmr/reference`: their
@@ -37,7 +40,10 @@ use crate::raster::RasterSettings;
 use crate::rasterize::rasterize;
 use crate::scene::{CameraDesc, ImageDesc, Material, Method, Raster, Scene, SceneDesc};
 use crate::shade::suite::OCTA_FACES;
-use crate::soft::{dibr, softras, DibrSettings, SoftSettings};
+use crate::soft::{
+    dibr, dibr_aggregate, soft_fragments, softras, softras_aggregate, Coverage, DibrSettings,
+    SoftBlendSettings, SoftSettings, SoftStageSettings,
+};
 use crate::transform::to_clip;
 
 /// Image size of the method cases.
@@ -164,6 +170,39 @@ macro_rules! method_fn {
         }
     };
 }
+/// The composed soft method over the octahedron: the soft stage (wide `sigma` / `delta`, so
+/// that the 10-pixel image is smooth), the colours interpolated per fragment, the method's
+/// blend.
+fn soft_composed<'t, T: Real>(
+    t: &'t Tape<T>,
+    x: &[Var<'t, T>],
+    method: Method,
+) -> Result<Var<'t, T>, RenderError> {
+    let clip = octa_clip(t, x[0]);
+    let coverage = if method == Method::SoftRas {
+        Coverage::Sigmoid { sigma: 1e-2 }
+    } else {
+        Coverage::Exp { delta: 1e-2 }
+    };
+    let sf = soft_fragments(clip, faces(), &SoftStageSettings::new(SIZE, SIZE, coverage))?;
+    let colors = interpolate(x[1], &sf.raster)?;
+    if method == Method::SoftRas {
+        let mut s = SoftBlendSettings::new(1.0, 10.0);
+        s.gamma = 1e-2;
+        softras_aggregate(&sf, colors, &s)
+    } else {
+        dibr_aggregate(&sf, colors, &[])
+    }
+}
+
+fn soft_softras_case<'t, T: Real>(t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
+    or_fail(t, soft_composed(t, x, Method::SoftRas))
+}
+
+fn soft_dibr_case<'t, T: Real>(t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
+    or_fail(t, soft_composed(t, x, Method::Dibr))
+}
+
 method_fn!(hard_case, Method::Hard);
 method_fn!(softras_case, Method::SoftRas);
 method_fn!(dibr_case, Method::Dibr);
@@ -213,6 +252,16 @@ pub fn cases() -> Vec<Case> {
         pos_colors("method/deodr", deodr_case::<f32>, deodr_case::<f64>),
         pos_colors("method/softras", softras_case::<f32>, softras_case::<f64>),
         pos_colors("method/dibr", dibr_case::<f32>, dibr_case::<f64>),
+        pos_colors(
+            "method/softras/composed",
+            soft_softras_case::<f32>,
+            soft_softras_case::<f64>,
+        ),
+        pos_colors(
+            "method/dibr/composed",
+            soft_dibr_case::<f32>,
+            soft_dibr_case::<f64>,
+        ),
         colors_only(
             "method/tf_mesh/colors",
             tf_mesh_case::<f32>,
@@ -319,7 +368,7 @@ mod tests {
         let mut reg = Registry::new();
         register(&mut reg);
         let results = reg.run(None);
-        assert_eq!(results.len(), 12);
+        assert_eq!(results.len(), 14);
         for r in &results {
             assert!(r.passed, "{r:?}");
         }

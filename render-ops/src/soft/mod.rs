@@ -9,13 +9,26 @@
 //! results are bit-identical for any thread count. SoftRas and DIB-R on `f32` tapes evaluate
 //! 8 pixels of a row span at a time in single precision (`simd`, `lanes`, `softras::fast`,
 //! `dibr::fast`).
+//!
+//! The same methods also come as composable stages, so that any texture, lighting or shader
+//! runs per fragment: [`stage::soft_fragments`] yields each pixel's fragments within the
+//! cut-off (or its nearest K) with coverage probabilities, clipped barycentrics and depths as
+//! a sparse list; interpolation, texturing and shaders run on it as on the hard rasterizer's
+//! fragments; [`aggregate::softras_aggregate`] and [`aggregate::dibr_aggregate`] blend. The
+//! fused ops above stay the fast path for per-vertex colours.
 
+pub mod aggregate;
 pub(crate) mod common;
 pub mod dibr;
 pub(crate) mod lanes;
 pub(crate) mod simd;
 pub mod softras;
+pub mod stage;
 
+pub use aggregate::{
+    dibr_aggregate, dibr_blend, softras_aggregate, softras_blend, SoftBlendSettings,
+};
 pub use common::MAX_SOFT_BIN_ENTRIES;
 pub use dibr::{dibr, dibr_alpha, DibrSettings};
 pub use softras::{softras, SoftSettings};
+pub use stage::{soft_fragments, Coverage, SoftFragments, SoftStageSettings, MAX_SOFT_FRAGMENTS};

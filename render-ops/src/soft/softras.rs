@@ -272,7 +272,7 @@ impl TileScratch {
     }
 }
 
-struct SoftRasOp {
+pub(crate) struct SoftRasOp {
     faces: Arc<Vec<[u32; 3]>>,
     s: SoftSettings,
     prep: Option<Arc<Prep>>,
@@ -339,20 +339,20 @@ const BATCH: usize = 32;
 /// only: the forward's first pass and the backward evaluate it with the same operations, so
 /// they keep the same pairs and see the same values.
 #[derive(Clone, Copy, Default)]
-struct Pair {
+pub(crate) struct Pair {
     /// `x = s d^2 / sigma`.
-    x: f64,
+    pub x: f64,
     /// Screen-space barycentrics of the pixel centre.
-    w: [f64; 3],
+    pub w: [f64; 3],
     /// The same clipped to `[0, 1]` and renormalised.
-    wn: [f64; 3],
+    pub wn: [f64; 3],
     /// Sum of the clipped barycentrics.
-    sumwc: f64,
+    pub sumwc: f64,
     /// View depth `1 / sum_k wn_k / z_k`.
-    z: f64,
+    pub z: f64,
     /// The closest boundary point, for a centre outside the triangle (inside, the backward
     /// takes the foot on the nearest edge, [`FaceGeom::closest_inside`]).
-    closest: Closest,
+    pub closest: Closest,
 }
 
 impl SoftRasOp {
@@ -361,7 +361,7 @@ impl SoftRasOp {
     /// distance rejects most of those before the exact closest point, eq. (1)-(2) of the
     /// paper: `D = sigmoid(s d^2 / sigma)`), or its clipped barycentrics do not normalise.
     #[inline(always)]
-    fn pair(g: &FaceGeom, p: [f64; 2], inv_sigma: f64, cut2: f64) -> Option<Pair> {
+    pub(crate) fn pair(g: &FaceGeom, p: [f64; 2], inv_sigma: f64, cut2: f64) -> Option<Pair> {
         let w = g.bary(p);
         let mut closest = Closest::default();
         let x = if w[0] >= 0.0 && w[1] >= 0.0 && w[2] >= 0.0 {
@@ -398,15 +398,7 @@ impl SoftRasOp {
     /// `wn_k z / z_k`.
     #[inline(always)]
     fn attr_weights(&self, g: &FaceGeom, q: &Pair) -> [f64; 3] {
-        if self.s.perspective_correct {
-            [
-                q.wn[0] * g.inv_d[0] * q.z,
-                q.wn[1] * g.inv_d[1] * q.z,
-                q.wn[2] * g.inv_d[2] * q.z,
-            ]
-        } else {
-            q.wn
-        }
+        attr_weights(g, q, self.s.perspective_correct)
     }
 
     /// Forward of tile `t` in two passes over its faces (in tile face order, each over the
@@ -544,6 +536,76 @@ impl SoftRasOp {
             out.extend([sc.m[lp], sc.zsum[lp], sc.prod[lp]]);
         }
     }
+}
+
+/// Interpolation weights of a pair's vertex attributes: the clipped, renormalised
+/// barycentrics `wn`, or perspective-correct `wn_k z / z_k`.
+#[inline(always)]
+pub(crate) fn attr_weights(g: &FaceGeom, q: &Pair, perspective_correct: bool) -> [f64; 3] {
+    if perspective_correct {
+        [
+            q.wn[0] * g.inv_d[0] * q.z,
+            q.wn[1] * g.inv_d[1] * q.z,
+            q.wn[2] * g.inv_d[2] * q.z,
+        ]
+    } else {
+        q.wn
+    }
+}
+
+/// Chains the gradients of a pair's clipped, renormalised barycentrics (`gwn`) and of its view
+/// depth `z = 1 / sum_k wn_k / z_k` (`gz`) to the face's NDC vertices (`gv`) and vertex view
+/// depths (`gdep`): through `z`, the clip-and-renormalise of the barycentrics, and the raw
+/// screen-space barycentrics `w_k = n_k / sum n` at pixel centre `p` (`inv_area = 1 /
+/// g.area`). Shared by SoftRas's fused backward and the soft fragment stage's.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(crate) fn pair_backward(
+    g: &FaceGeom,
+    q: &Pair,
+    p: [f64; 2],
+    mut gwn: [f64; 3],
+    gz: f64,
+    inv_area: f64,
+    gv: &mut [[f64; 2]; 3],
+    gdep: &mut [f64; 3],
+) {
+    let (v, inv_d) = (&g.v, &g.inv_d);
+    let gzinv = -q.z * q.z * gz;
+    for k in 0..3 {
+        gwn[k] += gzinv * inv_d[k];
+        gdep[k] -= gzinv * q.wn[k] * inv_d[k] * inv_d[k];
+    }
+    // Clip-and-renormalise, then raw barycentrics w_k = n_k / sum n.
+    let dot = gwn[0] * q.wn[0] + gwn[1] * q.wn[1] + gwn[2] * q.wn[2];
+    let inv_sumwc = 1.0 / q.sumwc;
+    let mut gw = [0.0; 3];
+    for k in 0..3 {
+        if q.w[k] > 0.0 && q.w[k] < 1.0 {
+            gw[k] = (gwn[k] - dot) * inv_sumwc;
+        }
+    }
+    let dot2 = gw[0] * q.w[0] + gw[1] * q.w[1] + gw[2] * q.w[2];
+    for k in 0..3 {
+        let gn = (gw[k] - dot2) * inv_area;
+        if gn == 0.0 {
+            continue;
+        }
+        let (i, j) = ((k + 1) % 3, (k + 2) % 3);
+        let a = [v[i][0] - p[0], v[i][1] - p[1]];
+        let b = [v[j][0] - p[0], v[j][1] - p[1]];
+        // n_k = cross(a, b).
+        gv[i][0] += gn * b[1];
+        gv[i][1] -= gn * b[0];
+        gv[j][0] -= gn * a[1];
+        gv[j][1] += gn * a[0];
+    }
+}
+
+/// `(sigmoid(x), sigmoid(-x))` of a pair's `x`, from one exponential.
+#[inline(always)]
+pub(crate) fn coverage_sigmoid(x: f64) -> (f64, f64) {
+    sigmoid_from(x, exp(-x.abs()))
 }
 
 impl<T: Real> Op<T> for SoftRasOp {
@@ -893,35 +955,7 @@ impl SoftRasOp {
                             }
                         }
                     }
-                    let gzinv = -q.z * q.z * gz;
-                    for k in 0..3 {
-                        gwn[k] += gzinv * inv_d[k];
-                        gdep[k] -= gzinv * q.wn[k] * inv_d[k] * inv_d[k];
-                    }
-                    // Clip-and-renormalise, then raw barycentrics w_k = n_k / sum n.
-                    let dot = gwn[0] * q.wn[0] + gwn[1] * q.wn[1] + gwn[2] * q.wn[2];
-                    let inv_sumwc = 1.0 / q.sumwc;
-                    let mut gw = [0.0; 3];
-                    for k in 0..3 {
-                        if q.w[k] > 0.0 && q.w[k] < 1.0 {
-                            gw[k] = (gwn[k] - dot) * inv_sumwc;
-                        }
-                    }
-                    let dot2 = gw[0] * q.w[0] + gw[1] * q.w[1] + gw[2] * q.w[2];
-                    for k in 0..3 {
-                        let gn = (gw[k] - dot2) * inv_area;
-                        if gn == 0.0 {
-                            continue;
-                        }
-                        let (i, j) = ((k + 1) % 3, (k + 2) % 3);
-                        let a = [v[i][0] - p[0], v[i][1] - p[1]];
-                        let b = [v[j][0] - p[0], v[j][1] - p[1]];
-                        // n_k = cross(a, b).
-                        gv[i][0] += gn * b[1];
-                        gv[i][1] -= gn * b[0];
-                        gv[j][0] -= gn * a[1];
-                        gv[j][1] += gn * a[0];
-                    }
+                    pair_backward(geom, q, p, gwn, gz, inv_area, &mut gv, &mut gdep);
                 }
             }
         }

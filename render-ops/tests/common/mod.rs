@@ -1,6 +1,8 @@
 //! Shared helpers of the render-ops integration tests.
 #![allow(dead_code)]
 
+pub mod scenes;
+
 use autodiff::Tensor;
 use ndarray::{ArrayD, IxDyn};
 
