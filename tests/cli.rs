@@ -371,7 +371,7 @@ fn bad_files_and_oversized_requests_give_one_line_errors() {
         ),
         "sigmaa",
     );
-    // softras takes per-vertex colours: it cannot sample a texture.
+    // A texture needs uvs: a textured scene over a mesh without 'vt' lines names the mesh.
     tapestry::render_ops::io::write_png(
         dir.join("t.png"),
         &tapestry::autodiff::ndarray::Array3::<f64>::from_elem((2, 2, 3), 0.5),
@@ -384,7 +384,7 @@ fn bad_files_and_oversized_requests_give_one_line_errors() {
             small,
             r#"{"method": "softras"}"#,
         ),
-        "raster.method 'softras' takes per-vertex colours",
+        "tri.obj has no uvs",
     );
     // Too large for memory: refused before allocating (a 4096^2 image at 16 faces per pixel is
     // 268M fragment slots; 65536^2 pixels is past the packed layout's pixel limit).

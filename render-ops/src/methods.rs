@@ -30,7 +30,9 @@ use crate::error::RenderError;
 use crate::raster::RasterSettings;
 use crate::rasterize::{rasterize, render_attributes, Rasterized};
 use crate::scene::{Method, Raster};
-use crate::soft::{self, Coverage, DibrSettings, SoftBlendSettings, SoftSettings, SoftStageSettings};
+use crate::soft::{
+    self, Coverage, DibrSettings, SoftBlendSettings, SoftSettings, SoftStageSettings,
+};
 
 /// How a method decides visibility and where its position gradients come from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -812,16 +812,12 @@ fn scene_methods_match_hard() {
             assert!(g.wrt(x).iter().any(|v| v.abs() > 1e-6), "{method}");
         }
     }
-    // A texture needs per-fragment uvs: rejected by softras, which takes per-vertex colours;
-    // tf_mesh (its extrapolated rasterization), opendr, nmr and deodr shade per fragment
-    // (tested in boundary.rs). The mesh has no uvs: its error.
+    // Every method samples a texture per fragment (tf_mesh through its extrapolated
+    // rasterization, opendr, nmr and deodr through the boundary ops, softras and dibr through
+    // the soft stage; tested in boundary.rs and soft_stage.rs). The mesh has no uvs: its error.
     let texel = ndarray::Array3::<f64>::from_elem((2, 2, 3), 0.5);
     render_ops::io::write_png(dir.join("t.png"), &texel).unwrap();
-    let sc = load("softras", r#""texture": "t.png","#);
-    let e = sc.render(&sc.vars(&tape, Wrt::default())).unwrap_err();
-    assert!(matches!(e, RenderError::Unsupported(_)), "softras: {e}");
-    assert!(e.to_string().contains("softras"), "{e}");
-    for method in ["tf_mesh", "opendr", "nmr", "deodr"] {
+    for method in ["tf_mesh", "opendr", "nmr", "deodr", "softras", "dibr"] {
         let sc = load(method, r#""texture": "t.png","#);
         let e = sc.render(&sc.vars(&tape, Wrt::default())).unwrap_err();
         assert!(e.to_string().contains("no uvs"), "{method}: {e}");
