@@ -13,11 +13,10 @@ mod common;
 use std::sync::Arc;
 
 use autodiff::gradcheck::{gradcheck, GradcheckOptions, Mode};
-use autodiff::optim::Adam;
 use autodiff::rng::Rng;
 use autodiff::{Real, Tape, Tensor, Var};
 use common::scenes::{
-    cosine, directions, flat, image_at, max_diff, moved, position_grad, positions_tensor, scene,
+    cosine, directions, fit_pose, flat, max_diff, moved, position_grad, positions_tensor, scene,
     seam_sphere, silhouette_vertices, supersampled, temp_dir, toon_rim, Kind,
 };
 use common::{perspective_clip, smooth_colours, weights};
@@ -445,62 +444,9 @@ fn textured_pose_fit_through_silhouettes() {
     let mesh = seam_sphere(8, 12, 0.7);
     let size = 32;
     let sc = scene(&dir, &mesh, Kind::Textured, "deodr", size);
-    let pose_points = |pose: [f64; 3]| -> Vec<[f64; 3]> {
-        let (s, c) = pose[2].sin_cos();
-        mesh.positions
-            .iter()
-            .map(|p| {
-                [
-                    c * p[0] + s * p[2] + pose[0],
-                    p[1] + pose[1],
-                    -s * p[0] + c * p[2],
-                ]
-            })
-            .collect()
-    };
-    let truth = [0.12, -0.08, 0.25];
-    let target = image_at(&sc, &positions_tensor(&pose_points(truth)));
-    let mut pose = ArrayD::from_shape_vec(IxDyn(&[3]), vec![-0.1, 0.1, 0.0]).unwrap();
-    let mut adam = Adam::new(0.02);
-    let mut first = None;
-    let mut last = 0.0;
-    for _ in 0..40 {
-        let tape = Tape::new();
-        let pv = tape.leaf(pose.clone());
-        // Points as a function of the pose on the tape.
-        let base = tape.constant(positions_tensor(&mesh.positions));
-        let ang = pv.slice(0, 2, 3);
-        let (s, c) = (ang.sin(), ang.cos());
-        let x = base.slice(1, 0, 1);
-        let y = base.slice(1, 1, 2);
-        let z = base.slice(1, 2, 3);
-        let pts = tape.concat(
-            &[
-                x * c + z * s + pv.slice(0, 0, 1),
-                y + pv.slice(0, 1, 2),
-                z * c - x * s,
-            ],
-            1,
-        );
-        let mut vars = sc.vars(&tape, Wrt::default());
-        vars.positions = pts;
-        let img = sc.render(&vars).unwrap();
-        let loss = (img - tape.constant(target.clone())).square().sum();
-        last = loss.item().unwrap();
-        first.get_or_insert(last);
-        let g = tape.backward(loss).unwrap().wrt(pv);
-        adam.step([(&mut pose, &g)]).unwrap();
-    }
-    let err: f64 = (0..3)
-        .map(|k| (pose[k] - truth[k]).abs())
-        .fold(0.0, f64::max);
-    println!(
-        "pose fit: loss {:.3} -> {last:.3}, pose {:?} (truth {truth:?})",
-        first.unwrap(),
-        pose.as_slice().unwrap()
-    );
-    assert!(last < 0.05 * first.unwrap(), "loss {last}");
-    assert!(err < 0.03, "pose error {err}");
+    let fit = fit_pose(&sc, &mesh, [0.12, -0.08, 0.25], 40);
+    assert!(fit.last < 0.05 * fit.first, "loss {}", fit.last);
+    assert!(fit.err < 0.03, "pose error {}", fit.err);
     std::fs::remove_dir_all(&dir).ok();
 }
 

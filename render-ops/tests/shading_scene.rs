@@ -61,67 +61,13 @@ fn temp_dir(name: &str) -> PathBuf {
 /// different uvs (separate `vt` indices, as OBJ files have them), poles included; per-vertex
 /// colours. Counter-clockwise seen from outside.
 fn seam_sphere(nlat: usize, nlon: usize) -> Mesh<f64> {
-    use std::f64::consts::{PI, TAU};
-    let mut positions = Vec::new();
-    let mut colors = Vec::new();
-    // Position index: pole 0, rings 1..nlat-1 with nlon vertices each, pole last.
-    positions.push([0.0, 1.0, 0.0]);
-    for i in 1..nlat {
-        let th = PI * i as f64 / nlat as f64;
-        for j in 0..nlon {
-            let ph = TAU * j as f64 / nlon as f64;
-            positions.push([th.sin() * ph.sin(), th.cos(), th.sin() * ph.cos()]);
-        }
-    }
-    positions.push([0.0, -1.0, 0.0]);
-    for p in &positions {
-        colors.push([0.7 + 0.2 * p[0], 0.6 + 0.3 * p[1], 0.8 - 0.2 * p[2]]);
-    }
-    let pid = |i: usize, j: usize| -> u32 {
-        if i == 0 {
-            0
-        } else if i == nlat {
-            (positions.len() - 1) as u32
-        } else {
-            (1 + (i - 1) * nlon + j % nlon) as u32
-        }
-    };
-    // uv grid (nlat + 1) x (nlon + 1): the seam column j = nlon duplicates j = 0 with u = 1.
-    let mut uvs = Vec::new();
-    for i in 0..=nlat {
-        for j in 0..=nlon {
-            uvs.push([j as f64 / nlon as f64, 1.0 - i as f64 / nlat as f64]);
-        }
-    }
-    let tid = |i: usize, j: usize| (i * (nlon + 1) + j) as u32;
-    let (mut faces, mut uv_faces) = (Vec::new(), Vec::new());
-    for i in 0..nlat {
-        for j in 0..nlon {
-            // Seen from outside (+z at phi = 0, x grows with phi): (i, j), (i+1, j), (i+1, j+1)
-            // is counter-clockwise.
-            let quads = [
-                [(i, j), (i + 1, j), (i + 1, j + 1)],
-                [(i, j), (i + 1, j + 1), (i, j + 1)],
-            ];
-            for q in quads {
-                let f = q.map(|(a, b)| pid(a, b));
-                if f[0] == f[1] || f[1] == f[2] || f[0] == f[2] {
-                    continue;
-                }
-                faces.push(f);
-                uv_faces.push(q.map(|(a, b)| tid(a, b)));
-            }
-        }
-    }
-    Mesh {
-        positions,
-        faces,
-        uvs,
-        uv_faces,
-        normals: Vec::new(),
-        normal_faces: Vec::new(),
-        colors,
-    }
+    let mut m = Mesh::uv_sphere(nlat, nlon, 1.0);
+    m.colors = m
+        .positions
+        .iter()
+        .map(|p| [0.7 + 0.2 * p[0], 0.6 + 0.3 * p[1], 0.8 - 0.2 * p[2]])
+        .collect();
+    m
 }
 
 const SH: &str = "[[0.8, 0.7, 0.6], [0.1, 0.05, 0.0], [0.3, 0.3, 0.25], [-0.1, 0.05, 0.1], \

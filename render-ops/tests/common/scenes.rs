@@ -4,6 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
+use autodiff::optim::Adam;
 use autodiff::{Tape, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
 use render_ops::mesh::Mesh;
@@ -39,66 +40,13 @@ pub fn temp_dir(name: &str) -> PathBuf {
 /// A latitude-longitude sphere of radius `r` with a uv seam (seam vertices share positions and
 /// have two uvs), per-vertex colours; counter-clockwise seen from outside.
 pub fn seam_sphere(nlat: usize, nlon: usize, r: f64) -> Mesh<f64> {
-    use std::f64::consts::{PI, TAU};
-    let mut positions = vec![[0.0, r, 0.0]];
-    for i in 1..nlat {
-        let th = PI * i as f64 / nlat as f64;
-        for j in 0..nlon {
-            let ph = TAU * j as f64 / nlon as f64;
-            positions.push([
-                r * th.sin() * ph.sin(),
-                r * th.cos(),
-                r * th.sin() * ph.cos(),
-            ]);
-        }
-    }
-    positions.push([0.0, -r, 0.0]);
-    let colors = positions
+    let mut m = Mesh::uv_sphere(nlat, nlon, r);
+    m.colors = m
+        .positions
         .iter()
         .map(|p| [0.7 + 0.2 * p[0], 0.6 + 0.3 * p[1], 0.8 - 0.2 * p[2]])
         .collect();
-    let last = positions.len() as u32 - 1;
-    let pid = |i: usize, j: usize| -> u32 {
-        if i == 0 {
-            0
-        } else if i == nlat {
-            last
-        } else {
-            (1 + (i - 1) * nlon + j % nlon) as u32
-        }
-    };
-    let mut uvs = Vec::new();
-    for i in 0..=nlat {
-        for j in 0..=nlon {
-            uvs.push([j as f64 / nlon as f64, 1.0 - i as f64 / nlat as f64]);
-        }
-    }
-    let tid = |i: usize, j: usize| (i * (nlon + 1) + j) as u32;
-    let (mut faces, mut uv_faces) = (Vec::new(), Vec::new());
-    for i in 0..nlat {
-        for j in 0..nlon {
-            for q in [
-                [(i, j), (i + 1, j), (i + 1, j + 1)],
-                [(i, j), (i + 1, j + 1), (i, j + 1)],
-            ] {
-                let f = q.map(|(a, b)| pid(a, b));
-                if f[0] == f[1] || f[1] == f[2] || f[0] == f[2] {
-                    continue;
-                }
-                faces.push(f);
-                uv_faces.push(q.map(|(a, b)| tid(a, b)));
-            }
-        }
-    }
-    Mesh {
-        positions,
-        faces,
-        uvs,
-        uv_faces,
-        normals: Vec::new(),
-        normal_faces: Vec::new(),
-        colors,
-    }
+    m
 }
 
 /// A smooth texture (stripes and a checker of low frequency, values on the 8-bit grid).
@@ -300,4 +248,75 @@ pub fn toon_rim<'t>(
     let ndv = (f.normal * f.view_dir).sum_axes(&[-1], true);
     let fresnel = (-ndv + 1.0).relu().powf(5.0) * 0.96 + 0.04;
     diffuse + fresnel * rim * vec3([0.3, 0.6, 1.0])
+}
+
+/// The result of [`fit_pose`]: the loss before the first and after the last step, and the
+/// largest error of a pose component.
+pub struct PoseFit {
+    pub first: f64,
+    pub last: f64,
+    pub err: f64,
+}
+
+/// An inverse task: the pose `[tx, ty, angle about y]` of `mesh` in `sc` recovered from the
+/// image rendered at `truth`, starting at `[-0.1, 0.1, 0]`, with `steps` Adam steps (rate
+/// 0.02) on the squared image difference.
+pub fn fit_pose(sc: &Scene<f64>, mesh: &Mesh<f64>, truth: [f64; 3], steps: usize) -> PoseFit {
+    let (s, c) = truth[2].sin_cos();
+    let posed: Vec<[f64; 3]> = mesh
+        .positions
+        .iter()
+        .map(|p| {
+            [
+                c * p[0] + s * p[2] + truth[0],
+                p[1] + truth[1],
+                -s * p[0] + c * p[2],
+            ]
+        })
+        .collect();
+    let target = image_at(sc, &positions_tensor(&posed));
+    let mut pose = ArrayD::from_shape_vec(IxDyn(&[3]), vec![-0.1, 0.1, 0.0]).unwrap();
+    let mut adam = Adam::new(0.02);
+    let mut first = None;
+    let mut last = 0.0;
+    for _ in 0..steps {
+        let tape = Tape::new();
+        let pv = tape.leaf(pose.clone());
+        // Points as a function of the pose on the tape.
+        let base = tape.constant(positions_tensor(&mesh.positions));
+        let ang = pv.slice(0, 2, 3);
+        let (s, c) = (ang.sin(), ang.cos());
+        let x = base.slice(1, 0, 1);
+        let y = base.slice(1, 1, 2);
+        let z = base.slice(1, 2, 3);
+        let pts = tape.concat(
+            &[
+                x * c + z * s + pv.slice(0, 0, 1),
+                y + pv.slice(0, 1, 2),
+                z * c - x * s,
+            ],
+            1,
+        );
+        let mut vars = sc.vars(&tape, Wrt::default());
+        vars.positions = pts;
+        let img = sc.render(&vars).unwrap();
+        let loss = (img - tape.constant(target.clone())).square().sum();
+        last = loss.item().unwrap();
+        first.get_or_insert(last);
+        let g = tape.backward(loss).unwrap().wrt(pv);
+        adam.step([(&mut pose, &g)]).unwrap();
+    }
+    let err = (0..3)
+        .map(|k| (pose[k] - truth[k]).abs())
+        .fold(0.0, f64::max);
+    println!(
+        "pose fit: loss {:.3} -> {last:.3}, pose {:?} (truth {truth:?})",
+        first.unwrap(),
+        pose.as_slice().unwrap()
+    );
+    PoseFit {
+        first: first.unwrap(),
+        last,
+        err,
+    }
 }
