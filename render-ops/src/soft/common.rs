@@ -811,6 +811,33 @@ pub(crate) fn exp(x: f64) -> f64 {
     (t + t * q) * f64::from_bits((((ni >> 6) + 1023) as u64) << 52)
 }
 
+/// Adds `g`, the gradient of a pair's squared boundary distance behind its signed coverage
+/// argument `x` (positive inside; SoftRas eq. 1, DIB-R eq. 4), to the projected corners `gv`:
+/// the distance is to the foot on the nearest edge line for an inside point (barycentrics `w`),
+/// to the pair's `closest` boundary point outside, to the closest point on the edge at `x = 0`.
+#[inline]
+pub(crate) fn signed_distance_backward(
+    geom: &FaceGeom,
+    p: [f64; 2],
+    x: f64,
+    w: &[f64; 3],
+    closest: &Closest,
+    g: f64,
+    gv: &mut [[f64; 2]; 3],
+) {
+    let gd2 = if x >= 0.0 { g } else { -g };
+    if gd2 != 0.0 {
+        let cl = if x > 0.0 {
+            geom.closest_inside(p, w)
+        } else if x < 0.0 {
+            *closest
+        } else {
+            geom.closest(p)
+        };
+        closest_backward(&cl, gd2, gv);
+    }
+}
+
 /// Adds `gd2 * d(d2)/d(vertex NDC)` to `gv` (the closest parameter `t` is optimal or at a
 /// clamp, so it does not move to first order).
 #[inline]

@@ -49,7 +49,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory_projected, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom,
+    check_memory_projected, exp, ndc_to_clip, project, signed_distance_backward, Closest, FaceGeom,
     Projected, TileBins, TILE,
 };
 use super::lanes;
@@ -906,18 +906,15 @@ impl SoftRasOp {
                     let g_zn = dd * gblend * inv_gamma;
                     // Coverage: x = s d2 / sigma, d2 the squared distance to the closest boundary
                     // point (for an inside point the foot on the nearest edge line).
-                    let sign = if q.x >= 0.0 { 1.0 } else { -1.0 };
-                    let gd2 = gx * sign * inv_sigma;
-                    if gd2 != 0.0 {
-                        let cl = if q.x > 0.0 {
-                            geom.closest_inside(p, &q.w)
-                        } else if q.x < 0.0 {
-                            q.closest
-                        } else {
-                            geom.closest(p)
-                        };
-                        closest_backward(&cl, gd2, &mut gv);
-                    }
+                    signed_distance_backward(
+                        geom,
+                        p,
+                        q.x,
+                        &q.w,
+                        &q.closest,
+                        gx * inv_sigma,
+                        &mut gv,
+                    );
                     if gscale == 0.0 && g_zn == 0.0 {
                         continue;
                     }

@@ -19,7 +19,7 @@
 //! Per pixel the fragments are sorted nearest first (view depth, then face id), and with
 //! `max_faces = Some(K)` only the K nearest are kept. The per-pair geometry and its backward
 //! are those of the fused SoftRas op ([`super::softras`]: `pair`, `pair_backward`,
-//! `closest_backward`), not a second copy.
+//! `signed_distance_backward`), not a second copy.
 //!
 //! Memory: the fragment list holds one entry per kept (face, pixel) pair (a face id, three
 //! barycentrics, two depths and a probability, and their tape copies: about 60 bytes in `f32`).
@@ -41,7 +41,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::common::{
-    check_memory_projected, closest_backward, ndc_to_clip, Projected, TileBins, TILE,
+    check_memory_projected, ndc_to_clip, signed_distance_backward, Projected, TileBins, TILE,
 };
 use super::softras::{attr_weights, coverage_sigmoid, pair_backward, Pair, SoftRasOp};
 use crate::error::RenderError;
@@ -651,18 +651,8 @@ impl<T: Real> StageOp<T> {
                 }
             }
         };
-        let sign = if q.x >= 0.0 { 1.0 } else { -1.0 };
-        let gd2 = gx * sign / s.coverage.scale();
-        if gd2 != 0.0 {
-            let cl = if q.x > 0.0 {
-                geom.closest_inside(p, &q.w)
-            } else if q.x < 0.0 {
-                q.closest
-            } else {
-                geom.closest(p)
-            };
-            closest_backward(&cl, gd2, &mut gv);
-        }
+        let g = gx / s.coverage.scale();
+        signed_distance_backward(geom, p, q.x, &q.w, &q.closest, g, &mut gv);
         // Barycentrics: wn, or wp_k = wn_k z / z_k.
         let mut gwn = [0.0f64; 3];
         let mut gz = g_z;
