@@ -5,7 +5,8 @@
 //! frames as the stand-in reuses its target tensor) with respect to positions and colours. SoftRas for
 //! sigma in {1e-3, 1e-4, 1e-5} (gamma 1e-4, threshold 1e-4), DIB-R at its default delta.
 //! `*_composed`: the same renders through the composed stages (`soft::soft_fragments`,
-//! `interpolate`, `soft::softras_aggregate` / `soft::dibr_aggregate`), against which the fused
+//! `interpolate`, `soft::softras_aggregate`; for DIB-R the registry's composed path, the hard
+//! fragment pipeline under `soft::dibr_alpha`), against which the fused
 //! ops (chosen automatically for per-vertex colours) are compared in `docs/performance.md`.
 //! `scripts/bench-soft-peers.sh` runs this bench beside the PyTorch SoftRas stand-in.
 //!
@@ -22,9 +23,11 @@ use autodiff::{Tape, Tensor};
 use common::{frame_in, peer_scene, peers_view_proj, pool, PeerScene};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use render_ops::interpolate::interpolate;
+use render_ops::methods::{render_fragments, MethodSettings};
+use render_ops::scene;
 use render_ops::soft::{
-    dibr, dibr_aggregate, soft_fragments, softras, softras_aggregate, Coverage, DibrSettings,
-    SoftBlendSettings, SoftSettings, SoftStageSettings,
+    dibr, soft_fragments, softras, softras_aggregate, Coverage, DibrSettings, SoftBlendSettings,
+    SoftSettings, SoftStageSettings,
 };
 use render_ops::transform::to_clip;
 
@@ -35,7 +38,8 @@ enum Method {
     /// The composed path on the same per-vertex colours: `soft::soft_fragments`,
     /// `interpolate`, `soft::softras_aggregate` (sigma).
     SoftRasComposed(f64),
-    /// `soft::soft_fragments`, `interpolate`, `soft::dibr_aggregate`.
+    /// `methods::render_fragments` with `interpolate` as the shader: rasterize, interpolate,
+    /// `blend_hard`, `soft::dibr_alpha`.
     DibrComposed,
 }
 
@@ -63,11 +67,8 @@ fn run(sc: &PeerScene, size: usize, method: Method, target: Option<&Arc<Tensor<f
             softras_aggregate(&sf, interpolate(c, &sf.raster).unwrap(), &bs).unwrap()
         }
         Method::DibrComposed => {
-            let d = DibrSettings::new(size, size);
-            let mut st = SoftStageSettings::new(size, size, Coverage::Exp { delta: d.delta });
-            st.perspective_correct = d.perspective_correct;
-            let sf = soft_fragments(clip, sc.faces.clone(), &st).unwrap();
-            dibr_aggregate(&sf, interpolate(c, &sf.raster).unwrap(), &[]).unwrap()
+            let s = MethodSettings::new(scene::Method::Dibr, size, size);
+            render_fragments(clip, sc.faces.clone(), &s, &mut |r| interpolate(c, r)).unwrap()
         }
     };
     if let Some(target) = target {

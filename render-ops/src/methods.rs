@@ -9,8 +9,9 @@
 //! * [`render_fragments`]: any per-fragment shader (interpolated attributes, textures,
 //!   lighting, a user's closure) composed with the method's visibility stage: rasterize (for
 //!   `tf_mesh` with its silhouette band of extrapolated fragments), the shader, the hard blend,
-//!   then the method's boundary op; or for the soft methods the soft stage's fragments within
-//!   the cut-off ([`soft::soft_fragments`]), the shader, and the method's blend.
+//!   then the method's boundary op; for `softras` the soft stage's fragments within the
+//!   cut-off ([`soft::soft_fragments`]), the shader, and SoftRas's blend; for `dibr` the hard
+//!   image with DIB-R's soft alpha.
 //!
 //! The scene pipeline ([`crate::pipeline`]), `models::fit` and `tapestry bench` dispatch on the
 //! method only here. To add a method: a [`Method`] variant (scene.rs), its [`MethodInfo`] in
@@ -387,11 +388,11 @@ pub type FragmentShader<'a, 't, T> =
 /// * `tf_mesh`: [`approx::tf_mesh::rasterize_extrapolated`], the shader on the hard
 ///   fragments and on the silhouette band, [`approx::tf_mesh::blend_band`].
 /// * `opendr`, `nmr`, `deodr`: the hard image, then the method's op of [`crate::boundary`].
-/// * `softras`, `dibr`: the soft stage ([`soft::soft_fragments`]: every face within the
-///   cut-off, or the nearest K, with coverage probabilities and clipped barycentrics), the
-///   shader on those fragments, and SoftRas's softmax over depth
-///   ([`soft::softras_aggregate`]) or DIB-R's nearest covering fragment over the soft
-///   silhouette ([`soft::dibr_aggregate`]).
+/// * `softras`: the soft stage ([`soft::soft_fragments`]: every face within the cut-off, or
+///   the nearest K, with coverage probabilities and clipped barycentrics), the shader on those
+///   fragments, and SoftRas's softmax over depth ([`soft::softras_aggregate`]).
+/// * `dibr`: the hard image (the nearest covering fragment of each pixel, shaded once) with
+///   DIB-R's soft silhouette ([`soft::dibr_alpha`]) as its alpha, as the fused path does.
 ///
 /// # Errors
 /// The ops' and the shader's errors; `Unsupported` for a method whose
@@ -434,14 +435,14 @@ pub fn render_fragments<'t, T: Real>(
             let (image, r) = hard(shader)?;
             boundary::deodr(image, &r, clip, &s.boundary())
         }
-        Method::SoftRas | Method::Dibr => {
+        Method::SoftRas => {
             let frags = soft::soft_fragments(clip, faces, &s.soft_stage())?;
             let col = shader(&frags.raster)?;
-            if s.method == Method::SoftRas {
-                soft::softras_aggregate(&frags, col, &s.soft_blend())
-            } else {
-                soft::dibr_aggregate(&frags, col, &s.view.background)
-            }
+            soft::softras_aggregate(&frags, col, &s.soft_blend())
+        }
+        Method::Dibr => {
+            let (image, _) = hard(shader)?;
+            soft::dibr::composite(image, soft::dibr_alpha(clip, faces, &s.dibr())?)
         }
     }
 }

@@ -1,7 +1,7 @@
 #![allow(clippy::needless_range_loop, clippy::type_complexity)]
 //! The composed soft methods (`render_ops::soft::stage` + `render_ops::soft::aggregate`): f64
-//! gradchecks of the fragment stage, of interpolation over its fragments and of both blend
-//! ops; agreement with the fused per-vertex-colour ops; textured and per-pixel Phong-lit
+//! gradchecks of the fragment stage (both coverage models), of interpolation over its
+//! fragments and of SoftRas's blend op; agreement with the fused per-vertex-colour ops; textured and per-pixel Phong-lit
 //! scenes through `Scene::render` against the finite differences of a 16 x 16 supersampled hard
 //! render (RGBA loss: the silhouette lives in alpha); exact texel, colour and light gradients;
 //! the toon / rim closure shader through `softras` and `dibr`; a pose fit of a textured mesh
@@ -24,11 +24,13 @@ use rayon::prelude::*;
 use render_ops::camera::Camera;
 use render_ops::interpolate::interpolate;
 use render_ops::mesh::Mesh;
+use render_ops::methods::{render_fragments, MethodSettings};
 use render_ops::pipeline::Wrt;
+use render_ops::scene::Method;
 use render_ops::shade::{run_shader, MeshAttributes};
 use render_ops::soft::{
-    dibr, dibr_aggregate, dibr_blend, soft_fragments, softras, softras_aggregate, softras_blend,
-    Coverage, DibrSettings, SoftBlendSettings, SoftFragments, SoftSettings, SoftStageSettings,
+    dibr, soft_fragments, softras, softras_aggregate, softras_blend, Coverage, DibrSettings,
+    SoftBlendSettings, SoftFragments, SoftSettings, SoftStageSettings,
 };
 use render_ops::transform::to_clip;
 
@@ -137,32 +139,25 @@ fn gradcheck_interpolate_soft_fragments() {
     assert!(rep.passed(), "{rep}");
 }
 
-/// f64 gradcheck of both blend ops with respect to their per-fragment inputs (colours,
-/// probabilities, and SoftRas's depths) over a fixed fragment list, and of the whole
-/// composition stage + interpolate + blend with respect to the clip positions.
+/// f64 gradcheck of SoftRas's blend op with respect to its per-fragment inputs (colours,
+/// probabilities, depths) over a fixed fragment list, and of the whole composition stage +
+/// interpolate + blend with respect to the clip positions.
 #[test]
-fn gradcheck_blend_ops() {
+fn gradcheck_softras_blend() {
     let (clip, faces, pts) = ico(1);
     let w = 16;
     let wts = ArrayD::from_shape_vec(IxDyn(&[w, w, 4]), weights(w * w * 4)).unwrap();
     let bg = [0.1, 0.2, 0.3];
-    for coverage in COVERAGES {
-        let s = stage_settings(w, coverage);
+    {
+        let s = stage_settings(w, COVERAGES[0]);
         let tape0 = Tape::new();
         let sf = soft_fragments(tape0.constant(clip.clone()), faces.clone(), &s).unwrap();
-        let (f, inside) = (sf.raster.fragments.clone(), sf.inside.clone());
+        let f = sf.raster.fragments.clone();
         let n = f.len();
         let mut rng = Rng::new(4);
         let cols = ArrayD::from_shape_fn(IxDyn(&[n, 3]), |_| rng.uniform(0.0, 1.0));
-        // Probabilities away from 0 and 1 (and exactly 1 on inside DIB-R fragments, as the
-        // stage gives them), depths spread over a few gamma.
-        let prob = ArrayD::from_shape_fn(IxDyn(&[n]), |i| {
-            if matches!(coverage, Coverage::Exp { .. }) && inside[i[0]] {
-                1.0
-            } else {
-                rng.uniform(0.05, 0.95)
-            }
-        });
+        // Probabilities away from 0 and 1, depths spread over a few gamma.
+        let prob = ArrayD::from_shape_fn(IxDyn(&[n]), |_| rng.uniform(0.05, 0.95));
         let zn = ArrayD::from_shape_fn(IxDyn(&[n]), |_| rng.uniform(0.3, 0.32));
         let opts = GradcheckOptions {
             eps: 1e-7,
@@ -170,55 +165,35 @@ fn gradcheck_blend_ops() {
             rtol: 1e-5,
             ..Default::default()
         };
-        let rep = match coverage {
-            Coverage::Sigmoid { .. } => gradcheck(
-                |tape: &Tape<f64>, v| {
-                    let img = softras_blend(v[0], v[1], v[2], &f, 1e-2, 1e-3, &bg).unwrap();
-                    (img * tape.constant(wts.clone())).sum()
-                },
-                &[cols.clone(), prob.clone(), zn.clone()],
-                &opts,
-            ),
-            Coverage::Exp { .. } => gradcheck(
-                |tape: &Tape<f64>, v| {
-                    let img = dibr_blend(v[0], v[1], &f, &inside, &bg).unwrap();
-                    (img * tape.constant(wts.clone())).sum()
-                },
-                &[cols.clone(), prob.clone()],
-                &GradcheckOptions {
-                    wrt: Some(vec![true, true]),
-                    ..opts.clone()
-                },
-            ),
-        }
+        let rep = gradcheck(
+            |tape: &Tape<f64>, v| {
+                let img = softras_blend(v[0], v[1], v[2], &f, 1e-2, 1e-3, &bg).unwrap();
+                (img * tape.constant(wts.clone())).sum()
+            },
+            &[cols.clone(), prob.clone(), zn.clone()],
+            &opts,
+        )
         .unwrap();
-        println!("blend {coverage:?}:\n{rep}");
-        assert!(rep.passed(), "{coverage:?}\n{rep}");
-        // The whole composition with respect to the clip positions (SoftRas: smooth; DIB-R:
-        // its alpha, the foreground's colour moving with the barycentrics inside faces).
+        println!("blend:\n{rep}");
+        assert!(rep.passed(), "{rep}");
+        // The whole composition with respect to the clip positions.
         let cvals = smooth_colours(&pts);
         let rep = gradcheck(
             |tape: &Tape<f64>, v| {
                 let sf = soft_fragments(v[0], faces.clone(), &s).unwrap();
                 let c = interpolate(tape.constant(cvals.clone()), &sf.raster).unwrap();
-                let img = match coverage {
-                    Coverage::Sigmoid { .. } => {
-                        let mut bs = SoftBlendSettings::new(1.0, 50.0);
-                        bs.gamma = 1e-2;
-                        bs.background = bg.to_vec();
-                        softras_aggregate(&sf, c, &bs)
-                    }
-                    Coverage::Exp { .. } => dibr_aggregate(&sf, c, &bg),
-                }
-                .unwrap();
+                let mut bs = SoftBlendSettings::new(1.0, 50.0);
+                bs.gamma = 1e-2;
+                bs.background = bg.to_vec();
+                let img = softras_aggregate(&sf, c, &bs).unwrap();
                 (img * tape.constant(wts.clone())).sum()
             },
             std::slice::from_ref(&clip),
             &opts,
         )
         .unwrap();
-        println!("composition {coverage:?}:\n{rep}");
-        assert!(rep.passed(), "{coverage:?}\n{rep}");
+        println!("composition:\n{rep}");
+        assert!(rep.passed(), "{rep}");
     }
 }
 
@@ -257,10 +232,10 @@ fn fused_and_composed(
                 s.background = bg.to_vec();
                 dibr(c, a, faces.clone(), &s).unwrap()
             } else {
-                let mut st = stage_settings(w, Coverage::Exp { delta: ds.delta });
-                st.perspective_correct = ds.perspective_correct;
-                let sf = soft_fragments(c, faces.clone(), &st).unwrap();
-                dibr_aggregate(&sf, interpolate(a, &sf.raster).unwrap(), &bg).unwrap()
+                let mut ms = MethodSettings::new(Method::Dibr, w, w);
+                ms.view.background = bg.to_vec();
+                ms.delta = ds.delta;
+                render_fragments(c, faces.clone(), &ms, &mut |r| interpolate(a, r)).unwrap()
             }
         };
         let g = tape
@@ -483,26 +458,24 @@ fn closure_shader_through_softras_and_dibr() {
         size: usize,
     ) -> Var<'t, f64> {
         let clip = to_clip(p, &cam.view_proj());
-        let coverage = if method == "softras" {
-            Coverage::Sigmoid { sigma: 1e-4 }
-        } else {
-            Coverage::Exp {
-                delta: render_ops::scene::DEFAULT_DIBR_DELTA,
-            }
-        };
-        let sf = soft_fragments(clip, faces.clone(), &stage_settings(size, coverage)).unwrap();
         let eye = tape.constant(ArrayD::from_shape_vec(IxDyn(&[3]), cam.eye().to_vec()).unwrap());
-        let out = run_shader(&sf.raster, &MeshAttributes::new(p), eye, |f| {
-            toon_rim(f, params[0], params[1])
-        })
-        .unwrap();
+        let mut shader = |r: &render_ops::rasterize::Rasterized<'t, f64>| {
+            run_shader(r, &MeshAttributes::new(p), eye, |f| {
+                toon_rim(f, params[0], params[1])
+            })
+            .map(|out| out.color)
+        };
         let bg = [0.05; 3];
         if method == "softras" {
+            let stage = stage_settings(size, Coverage::Sigmoid { sigma: 1e-4 });
+            let sf = soft_fragments(clip, faces.clone(), &stage).unwrap();
             let mut bs = SoftBlendSettings::new(0.5, 10.0);
             bs.background = bg.to_vec();
-            softras_aggregate(&sf, out.color, &bs).unwrap()
+            softras_aggregate(&sf, shader(&sf.raster).unwrap(), &bs).unwrap()
         } else {
-            dibr_aggregate(&sf, out.color, &bg).unwrap()
+            let mut ms = MethodSettings::new(Method::Dibr, size, size);
+            ms.view.background = bg.to_vec();
+            render_fragments(clip, faces.clone(), &ms, &mut shader).unwrap()
         }
     }
     let scalar = |x: f64| ArrayD::from_elem(IxDyn(&[1]), x);

@@ -8,9 +8,11 @@
 //!   differences of the method's own image, which these backwards differentiate exactly (hard:
 //!   interior; deodr: the overdrawn image; softras, dibr: smooth images, here with wide
 //!   `sigma`/`delta` so that the 10-pixel image is smooth at the finite-difference step).
-//! - `method/softras/composed`, `method/dibr/composed`: the soft stage
-//!   ([`crate::soft::soft_fragments`]), per-fragment interpolation and the method's blend op
-//!   ([`crate::soft::aggregate`]), positions and colours against central differences.
+//!   `method/dibr` is also DIB-R's composed form (the hard fragment pipeline under its soft
+//!   alpha), with `interpolate` as the shader.
+//! - `method/softras/composed`: the soft stage ([`crate::soft::soft_fragments`]),
+//!   per-fragment interpolation and SoftRas's blend op ([`crate::soft::aggregate`]), positions
+//!   and colours against central differences.
 //! - `method/tf_mesh/colors`, `method/opendr/colors`, `method/nmr/colors`: their colour
 //!   gradient is the hard image's, exact.
 //! - `method/tf_mesh/reference`, `method/opendr/reference`, `method/nmr/reference`: their
@@ -41,8 +43,8 @@ use crate::rasterize::rasterize;
 use crate::scene::{CameraDesc, ImageDesc, Material, Method, Raster, Scene, SceneDesc};
 use crate::shade::suite::OCTA_FACES;
 use crate::soft::{
-    dibr, dibr_aggregate, soft_fragments, softras, softras_aggregate, Coverage, DibrSettings,
-    SoftBlendSettings, SoftSettings, SoftStageSettings,
+    dibr, soft_fragments, softras, softras_aggregate, Coverage, DibrSettings, SoftBlendSettings,
+    SoftSettings, SoftStageSettings,
 };
 use crate::transform::to_clip;
 
@@ -170,37 +172,19 @@ macro_rules! method_fn {
         }
     };
 }
-/// The composed soft method over the octahedron: the soft stage (wide `sigma` / `delta`, so
-/// that the 10-pixel image is smooth), the colours interpolated per fragment, the method's
-/// blend.
-fn soft_composed<'t, T: Real>(
-    t: &'t Tape<T>,
-    x: &[Var<'t, T>],
-    method: Method,
-) -> Result<Var<'t, T>, RenderError> {
-    let clip = octa_clip(t, x[0]);
-    let coverage = if method == Method::SoftRas {
-        Coverage::Sigmoid { sigma: 1e-2 }
-    } else {
-        Coverage::Exp { delta: 1e-2 }
-    };
-    let sf = soft_fragments(clip, faces(), &SoftStageSettings::new(SIZE, SIZE, coverage))?;
-    let colors = interpolate(x[1], &sf.raster)?;
-    if method == Method::SoftRas {
+/// Composed SoftRas over the octahedron: the soft stage (wide `sigma`, so that the 10-pixel
+/// image is smooth), the colours interpolated per fragment, SoftRas's blend.
+fn soft_softras_case<'t, T: Real>(t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
+    let composed = || {
+        let clip = octa_clip(t, x[0]);
+        let stage = SoftStageSettings::new(SIZE, SIZE, Coverage::Sigmoid { sigma: 1e-2 });
+        let sf = soft_fragments(clip, faces(), &stage)?;
+        let colors = interpolate(x[1], &sf.raster)?;
         let mut s = SoftBlendSettings::new(1.0, 10.0);
         s.gamma = 1e-2;
         softras_aggregate(&sf, colors, &s)
-    } else {
-        dibr_aggregate(&sf, colors, &[])
-    }
-}
-
-fn soft_softras_case<'t, T: Real>(t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
-    or_fail(t, soft_composed(t, x, Method::SoftRas))
-}
-
-fn soft_dibr_case<'t, T: Real>(t: &'t Tape<T>, x: &[Var<'t, T>]) -> Var<'t, T> {
-    or_fail(t, soft_composed(t, x, Method::Dibr))
+    };
+    or_fail(t, composed())
 }
 
 method_fn!(hard_case, Method::Hard);
@@ -256,11 +240,6 @@ pub fn cases() -> Vec<Case> {
             "method/softras/composed",
             soft_softras_case::<f32>,
             soft_softras_case::<f64>,
-        ),
-        pos_colors(
-            "method/dibr/composed",
-            soft_dibr_case::<f32>,
-            soft_dibr_case::<f64>,
         ),
         colors_only(
             "method/tf_mesh/colors",
@@ -368,7 +347,7 @@ mod tests {
         let mut reg = Registry::new();
         register(&mut reg);
         let results = reg.run(None);
-        assert_eq!(results.len(), 14);
+        assert_eq!(results.len(), 13);
         for r in &results {
             assert!(r.passed, "{r:?}");
         }

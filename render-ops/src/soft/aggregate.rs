@@ -1,19 +1,20 @@
-//! The soft methods' blend ops over per-fragment colours of the soft rasterization stage
-//! ([`super::stage`]): each takes colours `[N, C]` (interpolated, textured or shaded per
-//! fragment) and the fragments' coverage probabilities `D` `[N]`, and gives an image
-//! `[H, W, C + 1]` whose last channel is the silhouette `alpha = 1 - prod_f (1 - D_f)`.
+//! SoftRas's blend op over per-fragment colours of the soft rasterization stage
+//! ([`super::stage`]): [`softras_blend`] takes colours `[N, C]` (interpolated, textured or
+//! shaded per fragment), the fragments' coverage probabilities `D` `[N]` and normalised depths,
+//! and gives an image `[H, W, C + 1]` whose last channel is the silhouette `alpha = 1 - prod_f
+//! (1 - D_f)`. Liu et al. 2019, eq. 5-6: `I = (sum_f D_f e_f c_f + e_b bg) / (sum_f D_f e_f +
+//! e_b)`, `e_f = exp((zn_f - m) / gamma)`, `e_b = exp((eps - m) / gamma)`, `m = max(eps, max_f
+//! zn_f)`, with `zn` the normalised inverse depth (larger is nearer).
 //!
-//! - [`softras_blend`] (Liu et al. 2019, eq. 5-6): `I = (sum_f D_f e_f c_f + e_b bg) / (sum_f
-//!   D_f e_f + e_b)`, `e_f = exp((zn_f - m) / gamma)`, `e_b = exp((eps - m) / gamma)`, `m =
-//!   max(eps, max_f zn_f)`, with `zn` the normalised inverse depth (larger is nearer).
-//! - [`dibr_blend`] (Chen et al. 2019): the colour of the nearest fragment whose face covers the
-//!   pixel centre (the hard foreground), the background elsewhere.
+//! DIB-R needs no blend over soft fragments: its colour is the hard foreground and only its
+//! alpha is soft, so the registry composes it from the hard rasterizer's fragments and
+//! [`super::dibr::dibr_alpha`] (`crate::methods::render_fragments`), shading each pixel once.
 //!
 //! Silhouette stability (as the fused ops): `P = prod (1 - D)` is a plain product; where `P >=
 //! 1/2` the silhouette is `-expm1(sum log1p(-D))`. Its gradient is `prod_{j != f} (1 - D_j)`,
 //! `P / (1 - D_f)` while both are normal numbers, the product of the others otherwise.
 //!
-//! Both ops run forward in parallel over image rows and backward in parallel over fixed chunks
+//! The op runs forward in parallel over image rows and backward in parallel over fixed chunks
 //! of fragments (each fragment's gradient depends only on its pixel's aggregate, written by
 //! the forward): no sums across pixels, so results are bit-identical for any thread count.
 
@@ -85,22 +86,6 @@ pub fn softras_aggregate<'t, T: Real>(
         s.gamma,
         s.eps,
         &s.background,
-    )
-}
-
-/// DIB-R over the soft stage's fragments: the nearest covering fragment's colour `[N, C]` over
-/// the background, with the soft silhouette as the last channel: `[H, W, C + 1]`.
-pub fn dibr_aggregate<'t, T: Real>(
-    frags: &SoftFragments<'t, T>,
-    colors: Var<'t, T>,
-    background: &[f64],
-) -> Result<Var<'t, T>, RenderError> {
-    dibr_blend(
-        colors,
-        frags.prob,
-        &frags.raster.fragments,
-        &frags.inside,
-        background,
     )
 }
 
@@ -183,37 +168,6 @@ pub fn softras_blend<'t, T: Real>(
         pix: Vec::new(),
     };
     Ok(colors.tape().apply(op, &[colors, prob, zn]))
-}
-
-/// The DIB-R blend op over per-fragment colours `[N, C]` and probabilities `D` `[N]`: the
-/// colour of each pixel's first fragment (nearest first) with `inside`, the background
-/// elsewhere, and the silhouette `1 - prod (1 - D)`; exact backward to both.
-pub fn dibr_blend<'t, T: Real>(
-    colors: Var<'t, T>,
-    prob: Var<'t, T>,
-    fragments: &Arc<Fragments<T>>,
-    inside: &Arc<Vec<bool>>,
-    background: &[f64],
-) -> Result<Var<'t, T>, RenderError> {
-    let c = check("dibr_blend", &colors, &[&prob], fragments, background)?;
-    if inside.len() != fragments.len() {
-        return Err(AutodiffError::invalid(
-            "dibr_blend",
-            format!(
-                "{} inside flags for {} fragments",
-                inside.len(),
-                fragments.len()
-            ),
-        )
-        .into());
-    }
-    let op = DibrBlendOp {
-        f: fragments.clone(),
-        inside: inside.clone(),
-        bg: bg_of(background, c),
-        pix: Vec::new(),
-    };
-    Ok(colors.tape().apply(op, &[colors, prob]))
 }
 
 fn to_f64<T: Real>(t: &Tensor<T>) -> Vec<f64> {
@@ -402,71 +356,5 @@ impl<T: Real> Op<T> for SoftBlendOp<T> {
             ctx.needs_grad[1].then(|| tensor(pick(c), &[n])),
             ctx.needs_grad[2].then(|| tensor(pick(c + 1), &[n])),
         ])
-    }
-}
-
-struct DibrBlendOp<T: Real> {
-    f: Arc<Fragments<T>>,
-    inside: Arc<Vec<bool>>,
-    bg: Vec<f64>,
-    /// Per pixel: the `C` colours, alpha, then the front fragment (`-1` for none) and `P`.
-    pix: Vec<f64>,
-}
-
-impl<T: Real> Op<T> for DibrBlendOp<T> {
-    fn name(&self) -> &'static str {
-        "dibr_blend"
-    }
-
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let c = inputs[0].shape()[1];
-        let (col, d) = (to_f64(inputs[0]), to_f64(inputs[1]));
-        let (f, bg, inside) = (&*self.f, &self.bg, &self.inside);
-        let per = c + 3;
-        self.pix = per_pixel(f, per, |_, r, out| {
-            let front = r.clone().find(|&i| inside[i]);
-            match front {
-                Some(i) => out[..c].copy_from_slice(&col[i * c..(i + 1) * c]),
-                None => out[..c].copy_from_slice(bg),
-            }
-            let (alpha, p) = silhouette(&d[r]);
-            out[c] = alpha;
-            out[c + 1] = front.map_or(-1.0, |i| i as f64);
-            out[c + 2] = p;
-        });
-        Ok(vec![image(f, per, &self.pix, c + 1)])
-    }
-
-    /// The colour gradient goes to each pixel's front fragment; `dL/dD_f = a prod_{j != f}
-    /// (1 - D_j)` with `a` the alpha gradient.
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let c = ctx.inputs[0].shape()[1];
-        let d = to_f64(ctx.inputs[1]);
-        let go = to_f64(ctx.grad_outputs[0]);
-        let f = &*self.f;
-        let per = c + 3;
-        let pix = &self.pix;
-        let g = per_fragment(f, c + 1, |i, p, out| {
-            let st = &pix[p * per..(p + 1) * per];
-            let gp = &go[p * (c + 1)..(p + 1) * (c + 1)];
-            if st[c + 1] == i as f64 {
-                out[..c].copy_from_slice(&gp[..c]);
-            }
-            if gp[c] != 0.0 {
-                let r = f.pixel_range(p);
-                out[c] = gp[c] * leave_one_out(&d[r.clone()], i - r.start, st[c + 2]);
-            }
-        });
-        let n = f.len();
-        let gc = ctx.needs_grad[0].then(|| {
-            tensor(
-                g.chunks(c + 1)
-                    .flat_map(|r| r[..c].iter().copied())
-                    .collect(),
-                &[n, c],
-            )
-        });
-        let gd = ctx.needs_grad[1].then(|| tensor(g.chunks(c + 1).map(|r| r[c]).collect(), &[n]));
-        Ok(vec![gc, gd])
     }
 }

@@ -14,8 +14,10 @@
 //! runs per fragment: [`stage::soft_fragments`] yields each pixel's fragments within the
 //! cut-off (or its nearest K) with coverage probabilities, clipped barycentrics and depths as
 //! a sparse list; interpolation, texturing and shaders run on it as on the hard rasterizer's
-//! fragments; [`aggregate::softras_aggregate`] and [`aggregate::dibr_aggregate`] blend. The
-//! fused ops above stay the fast path for per-vertex colours.
+//! fragments; [`aggregate::softras_aggregate`] blends them. DIB-R's colour is the hard
+//! foreground, so its composed form is the hard rasterizer's fragments, the shader, and
+//! [`dibr::dibr_alpha`] as the alpha (`crate::methods::render_fragments`). The fused ops above
+//! stay the fast path for per-vertex colours.
 
 pub mod aggregate;
 pub(crate) mod common;
@@ -25,9 +27,7 @@ pub(crate) mod simd;
 pub mod softras;
 pub mod stage;
 
-pub use aggregate::{
-    dibr_aggregate, dibr_blend, softras_aggregate, softras_blend, SoftBlendSettings,
-};
+pub use aggregate::{softras_aggregate, softras_blend, SoftBlendSettings};
 pub use common::MAX_SOFT_BIN_ENTRIES;
 pub use dibr::{dibr, dibr_alpha, DibrSettings};
 pub use softras::{softras, SoftSettings};
