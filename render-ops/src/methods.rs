@@ -1,5 +1,5 @@
 //! The method registry: what each of the seven visibility methods is (its [`MethodInfo`]:
-//! name, [`Kind`], which gradients are exact, whether it composes with per-fragment shading),
+//! name, [`Kind`], which gradients are exact, its paper),
 //! the settings every method shares ([`ViewSettings`]) and those of one method
 //! ([`MethodSettings`], from which each op's own settings struct is built), and the two entry
 //! points every caller goes through:
@@ -17,8 +17,7 @@
 //! method only here. To add a method: a [`Method`] variant (scene.rs), its [`MethodInfo`] in
 //! [`Method::info`], and its arms in the two entry points.
 //!
-//! Every method composes today ([`MethodInfo::composes`]); the flag is the registry's contract
-//! for a method that takes per-vertex colours only, which callers then shade at the vertices.
+//! Every method composes with any shader: a new method must give both entry points.
 
 use std::sync::Arc;
 
@@ -71,9 +70,6 @@ pub struct MethodInfo {
     pub kind: Kind,
     /// Which gradients are exact.
     pub exact: Exactness,
-    /// Whether [`render_fragments`] runs a per-fragment shader for this method; `false`:
-    /// per-vertex colours only ([`render_vertex_colors`]).
-    pub composes: bool,
     /// The paper.
     pub paper: &'static str,
 }
@@ -86,47 +82,36 @@ impl Method {
             positions,
             silhouette,
         };
-        let (kind, exact, composes, paper) = match self {
-            Method::Hard => (
-                Kind::Hard,
-                e(true, true, false),
-                true,
-                "z-buffer rasterization",
-            ),
+        let (kind, exact, paper) = match self {
+            Method::Hard => (Kind::Hard, e(true, true, false), "z-buffer rasterization"),
             Method::TfMesh => (
                 Kind::Boundary,
                 e(true, false, true),
-                true,
                 "Genova et al., CVPR 2018 (TF Mesh Renderer)",
             ),
             Method::OpenDr => (
                 Kind::Boundary,
                 e(true, false, true),
-                true,
                 "Loper and Black, ECCV 2014 (OpenDR)",
             ),
             Method::Nmr => (
                 Kind::Boundary,
                 e(true, false, true),
-                true,
                 "Kato et al., CVPR 2018 (Neural 3D Mesh Renderer)",
             ),
             Method::SoftRas => (
                 Kind::Soft,
                 e(true, true, true),
-                true,
                 "Liu et al., ICCV 2019 (Soft Rasterizer)",
             ),
             Method::Dibr => (
                 Kind::Soft,
                 e(true, true, true),
-                true,
                 "Chen et al., NeurIPS 2019 (DIB-R)",
             ),
             Method::Deodr => (
                 Kind::Boundary,
                 e(true, true, true),
-                true,
                 "de La Gorce et al., TPAMI 2011 (DEODR)",
             ),
         };
@@ -135,7 +120,6 @@ impl Method {
             name: self.name(),
             kind,
             exact,
-            composes,
             paper,
         }
     }
@@ -395,8 +379,7 @@ pub type FragmentShader<'a, 't, T> =
 ///   DIB-R's soft silhouette ([`soft::dibr_alpha`]) as its alpha, as the fused path does.
 ///
 /// # Errors
-/// The ops' and the shader's errors; `Unsupported` for a method whose
-/// [`MethodInfo::composes`] is false.
+/// The ops' and the shader's errors.
 pub fn render_fragments<'t, T: Real>(
     clip: Var<'t, T>,
     faces: Arc<Vec<[u32; 3]>>,

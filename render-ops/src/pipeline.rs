@@ -148,11 +148,9 @@ impl<T: Real> Scene<T> {
     /// ([`render_vertex_colors`]). Lit or textured scenes are shaded per fragment (texture,
     /// per-pixel lighting) and composed with the method's visibility stage
     /// ([`render_fragments`]: the hard blend, `tf_mesh`'s extrapolated silhouette band, the
-    /// boundary ops of [`crate::boundary`], or the soft stage's fragments within the cut-off
-    /// and SoftRas's or DIB-R's blend). A method without a composed path
-    /// ([`crate::methods::MethodInfo::composes`]; none today) would render the scene's
-    /// lighting evaluated at the vertices ([`Scene::vertex_colors`]) and refuse textures. Every
-    /// method of [`crate::scene::Method::ALL`] is available.
+    /// boundary ops of [`crate::boundary`], the soft stage's fragments within the cut-off and
+    /// SoftRas's blend, or DIB-R's soft alpha). Every method of
+    /// [`crate::scene::Method::ALL`] is available.
     pub fn render<'t>(&self, vars: &SceneVars<'t, T>) -> Result<Var<'t, T>, RenderError> {
         // NaN or Inf in an input would otherwise reach the image silently (colours), be
         // skipped (soft methods) or be reported as a clip coordinate: name the input.
@@ -184,7 +182,7 @@ impl<T: Real> Scene<T> {
             .constant(ArrayD::from_shape_vec(IxDyn(&[3]), kd.to_vec()).expect("3"));
         let s = self.method_settings();
         let per_vertex = !self.shading(vars).is_lit() && vars.texture.is_none();
-        if per_vertex || !s.method.info().composes {
+        if per_vertex {
             return render_vertex_colors(clip, self.vertex_colors(vars, kd)?, faces, &s);
         }
         self.render_shaded(vars, clip, kd, &s)

@@ -24,7 +24,7 @@ use std::sync::Arc;
 use autodiff::{Tape, Var};
 use ndarray::{Array2, Array3, ArrayD};
 use render_ops::interpolate::interpolate;
-use render_ops::methods::{render_fragments, render_vertex_colors, MethodSettings};
+use render_ops::methods::{render_fragments, MethodSettings};
 use render_ops::scene::Method;
 use render_ops::shade::normals::vertex_normals;
 use render_ops::shade::sh::sh_shade;
@@ -211,11 +211,6 @@ impl<'m> FaceRenderer<'m> {
         (s.sigma, s.gamma, s.delta) = (o.sigma, o.gamma, o.delta);
         (s.near, s.far) = (NEAR_MM, FAR_MM);
         let faces = self.render_faces.clone();
-        if !o.method.info().composes {
-            // Per-vertex (Gouraud) shading for methods without a composed path.
-            let col = sh_shade(normals, albedo, v.sh);
-            return Ok(render_vertex_colors(clip, col, faces, &s)?);
-        }
         Ok(render_fragments(clip, faces, &s, &mut |r| {
             let n = interpolate(normals, r)?;
             let a = interpolate(albedo, r)?;
