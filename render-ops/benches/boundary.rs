@@ -66,9 +66,14 @@ fn bench_fused_vs_composed(c: &mut Criterion) {
                         let r = rasterize(clip, faces.clone(), &rs)?;
                         let shaded = blend_hard(interpolate(cv, &r)?, &r.fragments, &[0.0; 3])?;
                         match method {
-                            "opendr" => boundary::opendr(shaded, &r, clip)?,
-                            "nmr" => boundary::nmr(shaded, &r, clip)?,
-                            _ => boundary::deodr(shaded, &r, clip, &BoundarySettings::default())?,
+                            "opendr" => boundary::opendr_antialias(shaded, &r, clip)?,
+                            "nmr" => boundary::nmr_antialias(shaded, &r, clip)?,
+                            _ => boundary::deodr_antialias(
+                                shaded,
+                                &r,
+                                clip,
+                                &BoundarySettings::default(),
+                            )?,
                         }
                     } else {
                         match method {

@@ -14,6 +14,7 @@
 //! | blend and boundary | [`blend`] (hard z-buffer blend), [`boundary`] (`deodr`, `opendr`, `nmr` over any shaded image) |
 //! | wiring | [`pipeline`] (`Scene::render`: the scene JSON through the registry) |
 //! | checking | [`check`] (gradient checks against finite differences and supersampled references, the gradcheck registry) |
+//! | shared kernels | `simd` (eight-lane `f32` arithmetic, bit-identical with and without AVX2), `scatter` (deterministic scatter-add) |
 //! | errors | [`error`] |
 //!
 //! The main entry points are re-exported here: [`rasterize()`], [`interpolate()`],
@@ -44,6 +45,7 @@ pub mod rasterize;
 mod scatter;
 pub mod scene;
 pub mod shade;
+pub(crate) mod simd;
 pub mod soft;
 pub mod texture;
 pub mod transform;

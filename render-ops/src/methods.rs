@@ -408,15 +408,15 @@ pub fn render_fragments<'t, T: Real>(
         }
         Method::OpenDr => {
             let (image, r) = hard(shader)?;
-            boundary::opendr(image, &r, clip)
+            boundary::opendr_antialias(image, &r, clip)
         }
         Method::Nmr => {
             let (image, r) = hard(shader)?;
-            boundary::nmr(image, &r, clip)
+            boundary::nmr_antialias(image, &r, clip)
         }
         Method::Deodr => {
             let (image, r) = hard(shader)?;
-            boundary::deodr(image, &r, clip, &s.boundary())
+            boundary::deodr_antialias(image, &r, clip, &s.boundary())
         }
         Method::SoftRas => {
             let frags = soft::soft_fragments(clip, faces, &s.soft_stage())?;

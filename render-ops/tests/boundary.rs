@@ -47,9 +47,9 @@ fn apply<'t, T: Real>(
     clip: Var<'t, T>,
 ) -> Var<'t, T> {
     match method {
-        "opendr" => boundary::opendr(color, r, clip),
-        "nmr" => boundary::nmr(color, r, clip),
-        _ => boundary::deodr(color, r, clip, &BoundarySettings::default()),
+        "opendr" => boundary::opendr_antialias(color, r, clip),
+        "nmr" => boundary::nmr_antialias(color, r, clip),
+        _ => boundary::deodr_antialias(color, r, clip, &BoundarySettings::default()),
     }
     .unwrap()
 }
@@ -92,7 +92,7 @@ fn gradcheck_boundary_ops() {
                 |tape: &Tape<f64>, v| {
                     let r = rasterize(v[1], faces.clone(), &raster(w)).unwrap();
                     let out = if method == "deodr" {
-                        boundary::deodr(v[0], &r, v[1], &s).unwrap()
+                        boundary::deodr_antialias(v[0], &r, v[1], &s).unwrap()
                     } else {
                         apply(method, v[0], &r, v[1])
                     };
@@ -390,7 +390,7 @@ fn closure_shader_through_deodr() {
         .unwrap();
         (
             shaded,
-            boundary::deodr(shaded, &r, clip, &BoundarySettings::default()).unwrap(),
+            boundary::deodr_antialias(shaded, &r, clip, &BoundarySettings::default()).unwrap(),
         )
     }
     let scalar = |x: f64| ArrayD::from_elem(IxDyn(&[1]), x);

@@ -30,7 +30,7 @@ use rayon::prelude::*;
 
 use crate::raster::{FaceVjp, Fragments, PixelCursor, RunSetup, RunVjp};
 use crate::scatter::{scatter_vertex_rows, IndexMap};
-use crate::soft::simd::use_avx2;
+use crate::simd::use_avx2;
 
 /// Fragments per parallel chunk.
 const CHUNK: usize = 4096;

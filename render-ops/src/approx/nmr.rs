@@ -86,7 +86,7 @@
 //!
 //! This op takes interpolated per-vertex attributes (colours, Gouraud shading evaluated at the
 //! vertices): the colour a face would give an uncovered pixel is taken from its vertex
-//! attributes. Over the image of any shader or texture, [`crate::boundary::nmr()`] takes it
+//! attributes. Over the image of any shader or texture, [`crate::boundary::nmr_antialias()`] takes it
 //! from the shaded image instead.
 //!
 //! Cost: the outward sweeps dominate, one pass to the image border per scanline crossing of
@@ -149,7 +149,7 @@ struct Maps<'a> {
     /// The rendered image, `[H * W * nc]`.
     img: &'a [f64],
     /// Vertex attributes `[V * C]`; `None`: the outward sweep's colour after is the shaded
-    /// colour of the face's pixel just inside the edge (`crate::boundary::nmr`).
+    /// colour of the face's pixel just inside the edge (`crate::boundary::nmr_antialias`).
     attrs: Option<&'a [f64]>,
     /// The sweeps' per-pixel data laid out along their scanlines, so that a sweep reads memory
     /// in order: rows (`[H][W]`) for x-moves, columns (`[W][H]`) for y-moves. Per pixel,

@@ -45,7 +45,7 @@
 //! gradient.
 //!
 //! This op takes per-vertex colours (interpolated attributes); over the image of any shader or
-//! texture, [`crate::boundary::opendr()`] adds the boundary part of this derivative and leaves
+//! texture, [`crate::boundary::opendr_antialias()`] adds the boundary part of this derivative and leaves
 //! the interior to the exact chain through the shader.
 //!
 //! Deterministic: contributions are computed per image row in parallel and summed in pixel
@@ -113,7 +113,7 @@ impl Px {
 
 /// OpenDR's derivative over a rendered image: the faces drawn, and whether only the halves
 /// across an occlusion boundary count (`boundary_only`: the interior, smooth part is left to
-/// the exact chain through the shader, `crate::boundary::opendr`).
+/// the exact chain through the shader, `crate::boundary::opendr_antialias`).
 pub(crate) struct ImageGrad<'a> {
     pub faces: &'a [[u32; 3]],
     pub boundary_only: bool,

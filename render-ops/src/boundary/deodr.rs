@@ -52,7 +52,7 @@ use crate::rasterize::Rasterized;
 /// # Errors
 /// `color` not `[H, W, C]` at the rasterizer's size, `clip` not `[V, 4]` or too short for the
 /// rasterized faces, `overdraw_px` negative or not finite.
-pub fn deodr<'t, T: Real>(
+pub fn deodr_antialias<'t, T: Real>(
     color: Var<'t, T>,
     raster: &Rasterized<'t, T>,
     clip: Var<'t, T>,
@@ -61,12 +61,12 @@ pub fn deodr<'t, T: Real>(
     let sigma = settings.overdraw_px;
     if !(sigma.is_finite() && sigma >= 0.0) {
         return Err(AutodiffError::invalid(
-            "boundary::deodr",
+            "boundary::deodr_antialias",
             format!("overdraw_px must be finite and >= 0, got {sigma}"),
         )
         .into());
     }
-    let geo = Geometry::new("boundary::deodr", color, raster, clip)?;
+    let geo = Geometry::new("boundary::deodr_antialias", color, raster, clip)?;
     let screen = geo.screen(&*clip.value()?);
     let fr = &geo.fragments;
     let edges = if sigma > 0.0 {
@@ -199,7 +199,7 @@ struct RowGrad {
 
 impl<T: Real> Op<T> for DeodrOp<T> {
     fn name(&self) -> &'static str {
-        "boundary::deodr"
+        "boundary::deodr_antialias"
     }
 
     fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {

@@ -13,16 +13,16 @@
 //! rasterizer's barycentrics to the positions: the exact interior part) and to `x`, `y`, `w` of
 //! the clip positions of the edges' vertices (the boundary part):
 //!
-//! * [`deodr()`]: DEODR's discontinuity edge overdraw (M. de La Gorce, D. J. Fleet and
+//! * [`deodr_antialias()`]: DEODR's discontinuity edge overdraw (M. de La Gorce, D. J. Fleet and
 //!   N. Paragios, TPAMI 2011) of the shaded image: each silhouette edge is overdrawn on its outer
 //!   side with a linear ramp `overdraw_px` wide, towards the colour the face shows just inside
 //!   the edge (as nvdiffrast blends the two pixels of a pair across an edge); a forward of its
 //!   own, differentiated exactly.
-//! * [`opendr()`]: OpenDR's image-space derivative (M. M. Loper and M. J. Black, ECCV 2014) of
+//! * [`opendr_antialias()`]: OpenDR's image-space derivative (M. M. Loper and M. J. Black, ECCV 2014) of
 //!   the shaded image at occlusion boundaries: the forward is the image unchanged; across each
 //!   boundary between neighbouring pixels half the jump of the image is chained to the vertices
 //!   of the occluding face.
-//! * [`nmr()`]: the Neural 3D Mesh Renderer's edge term (H. Kato, Y. Ushiku and T. Harada,
+//! * [`nmr_antialias()`]: the Neural 3D Mesh Renderer's edge term (H. Kato, Y. Ushiku and T. Harada,
 //!   CVPR 2018, section 3.3) over the shaded image: the forward is the image unchanged; the
 //!   colour change a pixel sees when an edge sweeps over it, over the distance to the edge,
 //!   gated by the incoming gradient, with the shaded colour of the face just inside the edge as
@@ -43,9 +43,9 @@ pub mod deodr;
 pub mod nmr;
 pub mod opendr;
 
-pub use deodr::deodr;
-pub use nmr::nmr;
-pub use opendr::opendr;
+pub use deodr::deodr_antialias;
+pub use nmr::nmr_antialias;
+pub use opendr::opendr_antialias;
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -60,7 +60,7 @@ use crate::rasterize::Rasterized;
 /// Settings of the boundary ops.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BoundarySettings {
-    /// Width in pixels of [`deodr()`]'s overdraw ramp (default 1.0; 0 disables the overdraw).
+    /// Width in pixels of [`deodr_antialias()`]'s overdraw ramp (default 1.0; 0 disables the overdraw).
     pub overdraw_px: f64,
 }
 
@@ -135,8 +135,8 @@ impl<T: Real> Geometry<T> {
     }
 }
 
-/// The boundary term of an op whose forward is the identity on the shaded image ([`opendr()`],
-/// [`nmr()`]): `dL/dclip` `[V, 4]` from the screen geometry, the image and `dL/dI` (in `f64`).
+/// The boundary term of an op whose forward is the identity on the shaded image ([`opendr_antialias()`],
+/// [`nmr_antialias()`]): `dL/dclip` `[V, 4]` from the screen geometry, the image and `dL/dI` (in `f64`).
 pub(crate) trait BoundaryTerm: 'static {
     /// The op's name.
     const NAME: &'static str;

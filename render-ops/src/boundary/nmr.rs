@@ -38,7 +38,7 @@ use crate::rasterize::Rasterized;
 /// # Errors
 /// `color` not `[H, W, C]` at the rasterizer's size, `clip` not `[V, 4]` or too short for the
 /// rasterized faces.
-pub fn nmr<'t, T: Real>(
+pub fn nmr_antialias<'t, T: Real>(
     color: Var<'t, T>,
     raster: &Rasterized<'t, T>,
     clip: Var<'t, T>,
@@ -56,7 +56,7 @@ struct NmrTerm {
 }
 
 impl BoundaryTerm for NmrTerm {
-    const NAME: &'static str = "boundary::nmr";
+    const NAME: &'static str = "boundary::nmr_antialias";
 
     fn clip_gradient<T: Real>(
         &self,

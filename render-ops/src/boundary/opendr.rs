@@ -39,7 +39,7 @@ use crate::rasterize::Rasterized;
 /// # Errors
 /// `color` not `[H, W, C]` at the rasterizer's size, `clip` not `[V, 4]` or too short for the
 /// rasterized faces.
-pub fn opendr<'t, T: Real>(
+pub fn opendr_antialias<'t, T: Real>(
     color: Var<'t, T>,
     raster: &Rasterized<'t, T>,
     clip: Var<'t, T>,
@@ -56,7 +56,7 @@ pub fn opendr<'t, T: Real>(
 struct OpenDrTerm;
 
 impl BoundaryTerm for OpenDrTerm {
-    const NAME: &'static str = "boundary::opendr";
+    const NAME: &'static str = "boundary::opendr_antialias";
 
     fn clip_gradient<T: Real>(
         &self,

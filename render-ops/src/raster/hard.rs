@@ -10,7 +10,7 @@ use super::edge::Setup;
 use super::fragments::{assemble, Fragments, PixelCursor, TileFrags};
 use super::{par_first_index, validate_inputs, RasterError, RasterSettings, TILE_SIZE};
 use crate::scatter::{scatter_face_corners, IndexMap};
-use crate::soft::simd::use_avx2;
+use crate::simd::use_avx2;
 
 /// Per-thread dense K-buffer of a tile, reused across tiles: `k` slots per local pixel
 /// (`local_row * TILE_SIZE + local_col`) of NDC depth (`+inf` when empty) and index into the

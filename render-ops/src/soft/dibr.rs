@@ -50,13 +50,13 @@ use super::common::{
     check_memory, closest_backward, exp, ndc_to_clip, project, Closest, FaceGeom, TileBins, TILE,
 };
 use super::lanes::{band_faces, band_rows, geoms32, padded_px, Geom32};
-use super::simd::LANES;
 use crate::blend::blend_hard;
 use crate::error::RenderError;
 use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
 use crate::rasterize::rasterize;
 use crate::scene::DEFAULT_DIBR_DELTA;
+use crate::simd::LANES;
 
 mod fast;
 

@@ -6,7 +6,7 @@
 use rayon::prelude::*;
 
 use super::common::{FaceGeom, TileBins};
-use super::simd::{arr3, select, F8, LANES, M8};
+use crate::simd::{arr3, select, F8, LANES, M8};
 
 /// Image rows per band of the forward ([`band_rows`]): the forward runs over bands of whole
 /// image rows in parallel (not over 16 x 16 tiles as the `f64` evaluation), so that no row

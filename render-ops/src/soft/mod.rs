@@ -23,7 +23,6 @@ pub mod aggregate;
 pub(crate) mod common;
 pub mod dibr;
 pub(crate) mod lanes;
-pub(crate) mod simd;
 pub mod softras;
 pub mod stage;
 

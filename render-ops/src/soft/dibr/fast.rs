@@ -1,6 +1,6 @@
 //! The `f32` fast path of DIB-R's soft silhouette: the same forward and backward as the `f64`
 //! evaluation of [`super`], with the per-pair work done eight pixels of a row span at a time in
-//! single precision ([`crate::soft::simd`], [`crate::soft::lanes`]), as SoftRas's fast path.
+//! single precision ([`crate::simd`], [`crate::soft::lanes`]), as SoftRas's fast path.
 //!
 //! Taken for `f32` tapes whose constants (`1 / delta`, the squared cut-off and `ln(1 /
 //! threshold)`) are normal `f32` numbers ([`f32_range_ok`]). The forward runs over bands of
@@ -19,9 +19,9 @@
 use std::mem::MaybeUninit;
 
 use super::{DibrAlphaOp, DibrSettings, Prep};
+use crate::simd::{arr3, avx2_method, exp8, lanes, select, F8, LANES, M8};
 use crate::soft::common::{closest_backward, exp};
 use crate::soft::lanes::{add_closest_grad, band_rows, lanes_to, offsets, Edges8, Geom32};
-use crate::soft::simd::{arr3, avx2_method, exp8, lanes, select, F8, LANES, M8};
 
 /// [`Prep::p64`] of a pixel whose centre a face covers (alpha 1, no gradient).
 pub(super) const COVERED64: f64 = -1.0;
@@ -333,8 +333,8 @@ mod tests {
     use autodiff::{Real, Tape};
 
     use crate::mesh::Mesh;
+    use crate::simd::set_force_portable;
     use crate::soft::lanes::test_support::{peers_view_proj, rel_l2};
-    use crate::soft::simd::set_force_portable;
     use crate::soft::{dibr_alpha, DibrSettings};
     use crate::transform::to_clip;
 

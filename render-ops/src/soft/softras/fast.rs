@@ -1,6 +1,6 @@
 //! The `f32` fast path of SoftRas: the same forward and backward as the `f64` evaluation of
 //! [`super`], with the per-pair work done eight pixels at a time along each row span in single
-//! precision ([`crate::soft::simd`]).
+//! precision ([`crate::simd`]).
 //!
 //! Taken for `f32` tapes with at most [`FAST_MAX_C`] attribute channels and screen-space
 //! interpolation (`perspective_correct` off) whose constants are normal `f32` numbers
@@ -30,9 +30,9 @@ use std::mem::MaybeUninit;
 use rayon::prelude::*;
 
 use super::{Prep, SoftRasOp, PIX_STATS};
+use crate::simd::{arr3, exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
 use crate::soft::common::exp;
 use crate::soft::lanes::{add_closest_grad, band_rows, lanes_to, offsets, Edges8, Geom32};
-use crate::soft::simd::{arr3, exp8, select, use_avx2, EXP_MIN, F8, LANES, M8};
 
 /// Most attribute channels the fast path handles (per-face accumulators are fixed arrays).
 pub(super) const FAST_MAX_C: usize = 4;
@@ -705,8 +705,8 @@ mod tests {
     use autodiff::{Real, Tape};
 
     use crate::mesh::Mesh;
+    use crate::simd::set_force_portable;
     use crate::soft::lanes::test_support::{peers_view_proj, rel_l2};
-    use crate::soft::simd::set_force_portable;
     use crate::soft::{softras, SoftSettings};
     use crate::transform::to_clip;
 

@@ -1,5 +1,6 @@
 #![allow(clippy::excessive_precision)] // polynomial coefficients as published
-//! Eight-lane `f32` values for the soft rasterizers' `f32` fast path ([`super::softras`]):
+//! Eight-lane `f32` values for the `f32` fast paths (the hard rasterizer, `hard_grad`, the soft
+//! rasterizers [`crate::soft::softras`], [`crate::soft::dibr`]):
 //! plain arrays whose element-wise operations the compiler turns into 8-lane AVX vector
 //! instructions inside functions compiled with `#[target_feature(enable = "avx2")]`, and into
 //! SSE code (or scalar code) elsewhere, from the same source.
@@ -218,7 +219,7 @@ const MAGIC: f32 = 12_582_912.0;
 
 /// Smallest argument of [`exp8`]: below it `e^x` is not a normal `f32`; callers treat
 /// `x < EXP_MIN` as `e^x = 0` (a relative change below `1.2e-38` of the largest term of any
-/// sum they take, see [`super::softras`]).
+/// sum they take, see [`crate::soft::softras`]).
 pub(crate) const EXP_MIN: f32 = -87.0;
 
 /// `e^x` per lane for `x` in `[EXP_MIN, 88]` (clamped to it): Cody-Waite reduction `x = n ln 2
@@ -261,7 +262,7 @@ macro_rules! avx2_method {
                 op.$imp($($a),*)
             }
             #[cfg(target_arch = "x86_64")]
-            if $crate::soft::simd::use_avx2() {
+            if $crate::simd::use_avx2() {
                 // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
                 unsafe { avx2(self, $($a),*) };
                 return;
