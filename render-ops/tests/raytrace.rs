@@ -181,9 +181,11 @@ fn point_light_shadow_moves_with_the_occluder() {
 
 #[test]
 fn area_light_soft_shadow_moves_with_the_occluder() {
-    let su = shadow_setup(
+    // Soft shadows need more samples per pixel for the same noise (each pixel sample draws
+    // `area_edge_samples` edges).
+    let mut su = shadow_setup(
         16,
-        4,
+        16,
         vec![LightKind::Area],
         vec![
             [-1.5, 3.0, -0.2],
@@ -192,6 +194,7 @@ fn area_light_soft_shadow_moves_with_the_occluder() {
             [4.0, 4.0, 4.0],
         ],
     );
+    su.s.area_edge_samples = 16;
     occluder_check(&su, "area");
 }
 
@@ -270,16 +273,22 @@ fn visibility_check(mesh: &Mesh<f64>, name: &str) {
     let w: Vec<f64> = weights(16 * 16 * 4);
     let (_, g) = run::<f64>(&su, &su.pos, &[], Some(&w));
     let analytic = g.unwrap().0;
-    let h = 2e-3;
+    let h = 0.02;
+    // Every third vertex (the test's time); the analytic gradient of the same items.
+    let items: Vec<usize> = (0..su.pos.len()).step_by(3).collect();
+    let analytic: Vec<f64> = items
+        .iter()
+        .flat_map(|&v| analytic[3 * v..3 * v + 3].to_vec())
+        .collect();
     let mut fd = Vec::new();
-    for v in 0..su.pos.len() {
+    for &v in &items {
         for k in 0..3 {
             let mut a = su.pos.clone();
             a[v][k] += h;
             let mut b = su.pos.clone();
             b[v][k] -= h;
-            let fa = dot(&supersampled_hard(&su, &a, 8), &w);
-            let fb = dot(&supersampled_hard(&su, &b, 8), &w);
+            let fa = dot(&supersampled_hard(&su, &a, 16), &w);
+            let fb = dot(&supersampled_hard(&su, &b, 16), &w);
             fd.push((fa - fb) / (2.0 * h));
         }
     }
@@ -311,4 +320,210 @@ fn primary_visibility_gradient_of_a_self_occluding_mesh() {
     let mut faces = a.faces.clone();
     faces.extend(a.faces.iter().map(|f| f.map(|i| i + n)));
     visibility_check(&Mesh::new(pos, faces), "two spheres");
+}
+
+/// Occluder vertices moved by `d`.
+fn translated(pos: &[[f64; 3]], d: [f64; 3]) -> Vec<[f64; 3]> {
+    pos.iter()
+        .enumerate()
+        .map(|(i, p)| {
+            if i >= 4 {
+                [p[0] + d[0], p[1] + d[1], p[2] + d[2]]
+            } else {
+                *p
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn inverse_task_recovers_the_occluder_from_its_shadow_alone() {
+    // The occluder is outside the view: only its shadow on the plane is seen.
+    let su = shadow_setup(
+        16,
+        4,
+        vec![LightKind::Ambient, LightKind::Point],
+        vec![[0.1; 3], [-1.2, 3.0, 0.2], [1.0, 1.0, 1.0]],
+    );
+    let target = run::<f64>(&su, &su.pos, &su.rows, None).0;
+    let start = [0.2, 0.1, -0.15];
+    let mut d = start;
+    let (mut m, mut v) = ([0.0; 3], [0.0; 3]);
+    let (lr, b1, b2) = (0.02, 0.9, 0.999);
+    for it in 1..=60 {
+        let pos = translated(&su.pos, d);
+        let img = run::<f64>(&su, &pos, &su.rows, None).0;
+        // L = sum (img - target)^2: the linear loss's weights are 2 (img - target).
+        let w: Vec<f64> = img
+            .iter()
+            .zip(&target)
+            .map(|(a, b)| 2.0 * (a - b))
+            .collect();
+        let (gp, _) = run::<f64>(&su, &pos, &su.rows, Some(&w)).1.unwrap();
+        for k in 0..3 {
+            let g: f64 = (4..8).map(|i| gp[3 * i + k]).sum();
+            m[k] = b1 * m[k] + (1.0 - b1) * g;
+            v[k] = b2 * v[k] + (1.0 - b2) * g * g;
+            let mh = m[k] / (1.0 - b1.powi(it));
+            let vh = v[k] / (1.0 - b2.powi(it));
+            d[k] -= lr * mh / (vh.sqrt() + 1e-12);
+        }
+    }
+    let err = dot(&d, &d).sqrt();
+    let err0 = dot(&start, &start).sqrt();
+    eprintln!("occluder position error {err0:.3} -> {err:.4} ({d:?})");
+    assert!(err < 0.25 * err0, "{err0} -> {err}: {d:?}");
+}
+
+fn all_finite(su: &Setup) {
+    let n = su.s.width * su.s.height * 4;
+    let w = weights(n);
+    let (img, g) = run::<f64>(su, &su.pos, &su.rows, Some(&w));
+    let (gp, gl) = g.unwrap();
+    assert!(img.iter().all(|x| x.is_finite()));
+    assert!(gp.iter().chain(&gl).all(|x| x.is_finite()));
+}
+
+#[test]
+fn hard_cases_give_finite_images_and_gradients() {
+    let point = || {
+        shadow_setup(
+            12,
+            2,
+            vec![LightKind::Ambient, LightKind::Point, LightKind::Area],
+            vec![
+                [0.1; 3],
+                [-1.2, 3.0, 0.2],
+                [1.0, 1.0, 1.0],
+                [-1.5, 3.0, -0.2],
+                [0.5, 0.0, 0.0],
+                [0.0, 0.0, 0.5],
+                [4.0, 4.0, 4.0],
+            ],
+        )
+    };
+    // Grazing: the camera in the ground plane's plane, looking along it.
+    let mut g = point();
+    g.camera = camera([0.0, 0.0, 3.0], [0.0, 0.0, 0.0], 40.0);
+    g.s.eye = [0.0, 0.0, 3.0];
+    all_finite(&g);
+    // Degenerate triangles (a repeated vertex, collinear vertices) added to the mesh.
+    let mut d = point();
+    d.faces.extend([[4, 4, 5], [0, 1, 1]]);
+    d.pos.push([0.0, 0.5, 0.0]);
+    d.pos.push([0.5, 0.5, 0.0]);
+    d.pos.push([1.0, 0.5, 0.0]);
+    d.colors.extend([[1.0; 3]; 3]);
+    d.faces.push([8, 9, 10]);
+    all_finite(&d);
+    // A point light inside a closed mesh (everything outside it is in shadow).
+    let mut inside = point();
+    let sphere = Mesh::<f64>::icosphere(1, 0.3);
+    let base = inside.pos.len() as u32;
+    inside
+        .pos
+        .extend(sphere.positions.iter().map(|p| [p[0], p[1] + 0.5, p[2]]));
+    inside.colors.extend(vec![[0.5; 3]; sphere.positions.len()]);
+    inside
+        .faces
+        .extend(sphere.faces.iter().map(|f| f.map(|i| i + base)));
+    inside.rows[1] = [0.0, 0.5, 0.0];
+    let (img, _) = run::<f64>(&inside, &inside.pos, &inside.rows, None);
+    all_finite(&inside);
+    // Many tiny triangles over the plane.
+    let mut tiny = point();
+    for i in 0..20000u32 {
+        let (x, z) = ((i % 200) as f64 * 0.01 - 1.0, (i / 200) as f64 * 0.01 - 0.5);
+        let b = tiny.pos.len() as u32;
+        tiny.pos
+            .extend([[x, 0.3, z], [x + 1e-4, 0.3, z], [x, 0.3, z + 1e-4]]);
+        tiny.colors.extend([[0.9; 3]; 3]);
+        tiny.faces.push([b, b + 1, b + 2]);
+    }
+    all_finite(&tiny);
+    // The enclosed point light reaches nothing the camera sees: the image is that of the
+    // same scene with the point light switched off.
+    let mut off = inside.clone();
+    off.rows[2] = [0.0; 3];
+    let (img_off, _) = run::<f64>(&off, &off.pos, &off.rows, None);
+    let d = img
+        .iter()
+        .zip(&img_off)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(d < 1e-12, "{d}");
+}
+
+#[test]
+fn an_edge_exactly_on_a_pixel_boundary() {
+    // A square whose left edge projects onto NDC x = 0, the boundary between the two middle
+    // columns of an even-width image.
+    let mut s = RaytraceSettings::new(8, 8);
+    s.spp = 4;
+    let su = Setup {
+        pos: vec![
+            [0.0, -0.5, 0.0],
+            [0.6, -0.5, 0.0],
+            [0.6, 0.5, 0.0],
+            [0.0, 0.5, 0.0],
+        ],
+        faces: vec![[0, 1, 2], [0, 2, 3]],
+        colors: vec![[1.0; 3]; 4],
+        camera: camera([0.0, 0.0, 3.0], [0.0, 0.0, 0.0], 45.0),
+        rows: Vec::new(),
+        s,
+    };
+    let (img, g) = run::<f64>(&su, &su.pos, &[], Some(&weights(8 * 8 * 4)));
+    for r in 0..8 {
+        for c in 0..4 {
+            assert_eq!(img[(r * 8 + c) * 4 + 3], 0.0, "left half uncovered");
+        }
+    }
+    let (gp, _) = g.unwrap();
+    assert!(gp.iter().all(|x| x.is_finite()));
+    // The edge's vertices get a horizontal gradient (the edge sample's two sides differ).
+    assert!(gp[0].abs() > 0.0 && gp[9].abs() > 0.0, "{gp:?}");
+}
+
+#[test]
+fn f32_agrees_with_f64_and_results_do_not_depend_on_threads() {
+    let su = shadow_setup(
+        12,
+        2,
+        vec![LightKind::Ambient, LightKind::Point, LightKind::Area],
+        vec![
+            [0.1; 3],
+            [-1.2, 3.0, 0.2],
+            [1.0, 1.0, 1.0],
+            [-1.5, 3.0, -0.2],
+            [0.5, 0.0, 0.0],
+            [0.0, 0.0, 0.5],
+            [4.0, 4.0, 4.0],
+        ],
+    );
+    let w = weights(12 * 12 * 4);
+    let (i64_, g64) = run::<f64>(&su, &su.pos, &su.rows, Some(&w));
+    let (i32_, g32) = run::<f32>(&su, &su.pos, &su.rows, Some(&w));
+    let diff = i64_
+        .iter()
+        .zip(&i32_)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(diff < 1e-3, "image {diff}");
+    let (a, b) = (g64.unwrap(), g32.unwrap());
+    let c = cosine(&[a.0.clone(), a.1.clone()].concat(), &[b.0, b.1].concat());
+    assert!(c > 0.999, "gradient cosine f32 / f64 {c}");
+    let mut runs = Vec::new();
+    for threads in [1, 2, 3] {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        runs.push(pool.install(|| run::<f64>(&su, &su.pos, &su.rows, Some(&w))));
+    }
+    for r in &runs[1..] {
+        assert_eq!(r.0, runs[0].0);
+        assert_eq!(r.1, runs[0].1);
+    }
+    assert_eq!(runs[0].0, i64_);
 }
