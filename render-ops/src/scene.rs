@@ -1008,7 +1008,8 @@ mod tests {
                 gamma: 3e-4,
                 eps: 1e-2,
                 delta: 5e-5,
-                overdraw_px: 0.5
+                overdraw_px: 0.5,
+                ..Raster::default()
             }
         );
         assert_eq!(SceneDesc::parse(&d.to_json_pretty(), "x").unwrap(), d);
@@ -1018,6 +1019,49 @@ mod tests {
                 SceneDesc::parse(&with("raster", &format!("\"method\": \"{m}\"")), "s").unwrap();
             assert_eq!(d.raster.method, m);
         }
+    }
+
+    #[test]
+    fn area_lights_and_the_ray_tracer_keys() {
+        let area = |edge_v: &str| {
+            with(
+                "",
+                &format!(
+                    r#""lights": [{{"type": "area", "corner": [0, 2, 0], "edge_u": [1, 0, 0], "edge_v": {edge_v}, "radiance": [3, 3, 3]}}]"#
+                ),
+            )
+        };
+        let text = area("[0, 0, 1]");
+        let rt = |t: &str| {
+            let mut v: serde_json::Value = serde_json::from_str(t).unwrap();
+            v["raster"] = serde_json::json!({"method": "raytrace", "spp": 16, "seed": 7,
+                "edge_samples": 100, "shadow_edge_samples": 200, "area_edge_samples": 2});
+            v.to_string()
+        };
+        let d = SceneDesc::parse(&rt(&text), "s.json").unwrap();
+        d.validate("s.json").unwrap();
+        assert_eq!(d.lights[0].kind(), "area");
+        assert_eq!(d.raster.method, Method::Raytrace);
+        assert_eq!(Method::from_name("raytrace"), Some(Method::Raytrace));
+        assert_eq!(
+            (d.raster.spp, d.raster.seed, d.raster.edge_samples),
+            (16, 7, Some(100))
+        );
+        assert_eq!(
+            (d.raster.shadow_edge_samples, d.raster.area_edge_samples),
+            (Some(200), 2)
+        );
+        assert_eq!(SceneDesc::parse(&d.to_json_pretty(), "x").unwrap(), d);
+        // Raster methods refuse area lights; a flat light is refused.
+        let (k, m) = invalid(&text);
+        assert_eq!(k, "lights[0]");
+        assert!(m.contains("need raster.method 'raytrace'"), "{m}");
+        let flat = rt(&area("[2, 0, 0]"));
+        let (k, m) = invalid(&flat);
+        assert_eq!(k, "lights[0].edge_v");
+        assert!(m.contains("parallel"), "{m}");
+        let (k, _) = invalid(&rt(&text).replace(r#""spp":16"#, r#""spp":0"#));
+        assert_eq!(k, "raster.spp");
     }
 
     #[test]
@@ -1084,7 +1128,7 @@ mod tests {
             "",
             r#""lights": [{"type": "ambient", "color": [1, 1, 1]}, {"type": "spot", "color": [1, 1, 1]}]"#,
         ));
-        assert!(e.contains("lights[1]: unknown variant `spot`, expected one of `ambient`, `directional`, `point`, `sh`"), "{e}");
+        assert!(e.contains("lights[1]: unknown variant `spot`, expected one of `ambient`, `directional`, `point`, `area`, `sh`"), "{e}");
         let e = parse_err(&with(
             "",
             r#""lights": [{"type": "ambient", "colour": [1, 1, 1]}]"#,

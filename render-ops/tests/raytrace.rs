@@ -41,6 +41,9 @@ fn camera(eye: [f64; 3], at: [f64; 3], fov: f64) -> Camera {
         .unwrap()
 }
 
+/// Gradients with respect to positions and light rows, flattened.
+type Grads = (Vec<f64>, Vec<f64>);
+
 /// Image `[H, W, 4]` and, with `loss_w`, the gradients of `sum(loss_w * image)` with respect
 /// to positions and light rows.
 fn run<T: Real>(
@@ -48,7 +51,7 @@ fn run<T: Real>(
     pos: &[[f64; 3]],
     rows: &[[f64; 3]],
     loss_w: Option<&[f64]>,
-) -> (Vec<f64>, Option<(Vec<f64>, Vec<f64>)>) {
+) -> (Vec<f64>, Option<Grads>) {
     let tape = Tape::<T>::new();
     let want = loss_w.is_some();
     let p = tape.var(tensor::<T>(pos), want);

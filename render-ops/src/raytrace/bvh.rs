@@ -331,12 +331,12 @@ mod tests {
         let mut faces = Vec::new();
         for f in 0..n {
             let centre = [
-                c.next() * 4.0 - 2.0,
-                c.next() * 4.0 - 2.0,
-                c.next() * 4.0 - 2.0,
+                c.uniform() * 4.0 - 2.0,
+                c.uniform() * 4.0 - 2.0,
+                c.uniform() * 4.0 - 2.0,
             ];
             for _ in 0..3 {
-                pos.push([0, 1, 2].map(|k| centre[k] + 0.3 * (c.next() - 0.5)));
+                pos.push([0, 1, 2].map(|k| centre[k] + 0.3 * (c.uniform() - 0.5)));
             }
             let b = 3 * f as u32;
             faces.push([b, b + 1, b + 2]);
@@ -374,8 +374,8 @@ mod tests {
         assert_eq!(bvh1.order, bvh.order);
         let mut c = Counter::new(1, Stream::Pixel, 1);
         for _ in 0..400 {
-            let o = [c.next() * 8.0 - 4.0, c.next() * 8.0 - 4.0, 5.0];
-            let d = [c.next() - 0.5, c.next() - 0.5, -1.0];
+            let o = [c.uniform() * 8.0 - 4.0, c.uniform() * 8.0 - 4.0, 5.0];
+            let d = [c.uniform() - 0.5, c.uniform() - 0.5, -1.0];
             let r = Ray::new(o, d);
             let a = bvh.closest(&r, 1e-9, f64::INFINITY);
             let b = brute(&pos, &faces, &r);

@@ -112,7 +112,7 @@ impl RaytraceSettings {
             .chain(&r.ks)
             .chain(r.ka.iter().flatten())
             .all(|x| x.is_finite());
-        if !finite || !(r.shininess >= 0.0 && r.shininess.is_finite()) {
+        if !(finite && r.shininess >= 0.0 && r.shininess.is_finite()) {
             return bad("background, eye, ks, ka and shininess must be finite".into());
         }
         Ok(())
@@ -121,7 +121,7 @@ impl RaytraceSettings {
     /// Strata per row and per column of a pixel: the divisor pair of `spp` nearest a square.
     fn strata(&self) -> (usize, usize) {
         let mut sx = (self.spp as f64).sqrt() as usize;
-        while sx > 1 && self.spp % sx != 0 {
+        while sx > 1 && !self.spp.is_multiple_of(sx) {
             sx -= 1;
         }
         (sx.max(1), self.spp / sx.max(1))
@@ -358,7 +358,7 @@ impl<'a> Scene<'a> {
     }
 
     fn area_samples(&self, ctr: &mut Counter, n: usize) -> Vec<[f64; 2]> {
-        (0..n).map(|_| [ctr.next(), ctr.next()]).collect()
+        (0..n).map(|_| [ctr.uniform(), ctr.uniform()]).collect()
     }
 
     /// The radiance (RGB, coverage) of the primary ray through `u`, with the area lights
@@ -485,8 +485,8 @@ impl<'a> Scene<'a> {
             for j in 0..m {
                 let idx = (index * lights.n_area as u64 + area_k) * m as u64 + j as u64;
                 let mut ctr = Counter::new(self.s.seed, Stream::AreaEdge, idx);
-                let (e, pe) = edges.all.sample(ctr.next());
-                let s = ctr.next();
+                let (e, pe) = edges.all.sample(ctr.uniform());
+                let s = ctr.uniform();
                 let edge = edges.list[e as usize];
                 if !is_silhouette(&edge, &self.world, self.faces, Viewer::At(hit.x)) {
                     continue;
@@ -560,8 +560,8 @@ impl<'a> Scene<'a> {
     /// One primary-edge sample (module docs).
     fn primary_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
         let mut ctr = Counter::new(self.s.seed, Stream::PrimaryEdge, j as u64);
-        let (e, pe) = edges.primary.sample(ctr.next());
-        let s = ctr.next();
+        let (e, pe) = edges.primary.sample(ctr.uniform());
+        let s = ctr.uniform();
         let edge = edges.list[e as usize];
         let (ca, cb) = (self.clip[edge.v[0] as usize], self.clip[edge.v[1] as usize]);
         let c: [f64; 4] = std::array::from_fn(|k| ca[k] + s * (cb[k] - ca[k]));
@@ -589,8 +589,8 @@ impl<'a> Scene<'a> {
             return;
         };
         let mut ctr = Counter::new(self.s.seed, Stream::ShadowEdge, j as u64);
-        let (pick, pe) = edges.shadow.sample(ctr.next());
-        let s = ctr.next();
+        let (pick, pe) = edges.shadow.sample(ctr.uniform());
+        let s = ctr.uniform();
         let (li, e) = edges.shadow_items[pick as usize];
         let o = self.lights().offsets[li];
         let point = self.s.lights[li] == LightKind::Point;
@@ -785,8 +785,8 @@ impl<T: Real> Op<T> for RaytraceOp {
                 for k in 0..spp {
                     let mut ctr = Counter::new(self.s.seed, Stream::Pixel, (pix * spp + k) as u64);
                     let u = [
-                        c as f64 + ((k % sx) as f64 + ctr.next()) / sx as f64,
-                        r as f64 + ((k / sx) as f64 + ctr.next()) / sy as f64,
+                        c as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
+                        r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
                     ];
                     let v = sc.radiance(u, ctr, None, None);
                     for ch in 0..4 {
@@ -837,8 +837,8 @@ impl<T: Real> Op<T> for RaytraceOp {
                             let index = (pix * spp + k) as u64;
                             let mut ctr = Counter::new(self.s.seed, Stream::Pixel, index);
                             let u = [
-                                col as f64 + ((k % sx) as f64 + ctr.next()) / sx as f64,
-                                r as f64 + ((k / sx) as f64 + ctr.next()) / sy as f64,
+                                col as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
+                                r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
                             ];
                             let ae = area_edges.then_some((&edges, index));
                             sc.radiance(u, ctr, Some((g, &mut acc)), ae);

@@ -46,7 +46,7 @@ impl Counter {
 
     /// The next uniform number in `[0, 1)` (53 bits).
     #[inline]
-    pub fn next(&mut self) -> f64 {
+    pub fn uniform(&mut self) -> f64 {
         let h = mix(self.key ^ self.dim.wrapping_mul(0xD1B5_4A32_D192_ED03));
         self.dim += 1;
         (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
@@ -65,7 +65,7 @@ mod tests {
     #[test]
     fn numbers_are_uniform_and_depend_on_every_coordinate() {
         let mut c = Counter::new(7, Stream::Pixel, 3);
-        let xs: Vec<f64> = (0..20000).map(|_| c.next()).collect();
+        let xs: Vec<f64> = (0..20000).map(|_| c.uniform()).collect();
         assert!(xs.iter().all(|&x| (0.0..1.0).contains(&x)));
         let mean = xs.iter().sum::<f64>() / xs.len() as f64;
         assert!((mean - 0.5).abs() < 0.01, "{mean}");
@@ -79,7 +79,7 @@ mod tests {
             .map(|&b| (b as f64 - 2000.0).powi(2) / 2000.0)
             .sum();
         assert!(chi < 27.9, "{chi} {bins:?}");
-        let first = |seed, s, i| Counter::new(seed, s, i).next();
+        let first = |seed, s, i| Counter::new(seed, s, i).uniform();
         let base = first(7, Stream::Pixel, 3);
         assert_eq!(base, xs[0]);
         assert_ne!(base, first(8, Stream::Pixel, 3));
