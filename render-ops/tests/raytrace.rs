@@ -530,3 +530,73 @@ fn f32_agrees_with_f64_and_results_do_not_depend_on_threads() {
     }
     assert_eq!(runs[0].0, i64_);
 }
+
+#[test]
+fn bad_inputs_are_typed_errors() {
+    let tape = Tape::<f64>::new();
+    let su = unlit(&Mesh::<f64>::icosphere(0, 1.0), 4, 1);
+    let p = tape.var(tensor::<f64>(&su.pos), true);
+    let clip = to_clip(p, &su.camera.view_proj());
+    let faces = Arc::new(su.faces.clone());
+    let n = tape.constant(tensor::<f64>(&su.pos));
+    let lights = tape.constant(ArrayD::zeros(IxDyn(&[0, 3])));
+    let ok = |s: &RaytraceSettings, world, albedo, faces: Arc<Vec<[u32; 3]>>| {
+        raytrace(clip, world, n, albedo, lights, faces, s).map(|_| ())
+    };
+    assert!(ok(&su.s, p, n, faces.clone()).is_ok());
+    // Wrong shape, NaN, a face past the vertices, zero samples, a light with missing rows.
+    let short = tape.constant(tensor::<f64>(&su.pos[..3]));
+    assert!(ok(&su.s, short, n, faces.clone()).is_err());
+    let mut bad = su.pos.clone();
+    bad[1][2] = f64::NAN;
+    let nan = tape.constant(tensor::<f64>(&bad));
+    let e = ok(&su.s, p, nan, faces.clone()).unwrap_err();
+    assert!(e.to_string().contains("albedo"), "{e}");
+    let e = ok(&su.s, p, n, Arc::new(vec![[0, 1, 99]])).unwrap_err();
+    assert!(e.to_string().contains("face 0"), "{e}");
+    let mut s = su.s.clone();
+    s.spp = 0;
+    assert!(ok(&s, p, n, faces.clone()).is_err());
+    let mut s = su.s.clone();
+    s.lights = vec![LightKind::Point];
+    assert!(ok(&s, p, n, faces).is_err());
+}
+
+#[test]
+fn constant_lights_need_no_gradient() {
+    // Light rows as constants (the scene's default): the position gradient is the same.
+    let su = shadow_setup(
+        8,
+        2,
+        vec![LightKind::Ambient, LightKind::Point, LightKind::Area],
+        vec![
+            [0.1; 3],
+            [-1.2, 3.0, 0.2],
+            [1.0, 1.0, 1.0],
+            [-1.5, 3.0, -0.2],
+            [0.5, 0.0, 0.0],
+            [0.0, 0.0, 0.5],
+            [4.0, 4.0, 4.0],
+        ],
+    );
+    let w = weights(8 * 8 * 4);
+    let (_, g) = run::<f64>(&su, &su.pos, &su.rows, Some(&w));
+    let tape = Tape::<f64>::new();
+    let p = tape.var(tensor::<f64>(&su.pos), true);
+    let faces = Arc::new(su.faces.clone());
+    let clip = to_clip(p, &su.camera.view_proj());
+    let img = raytrace(
+        clip,
+        p,
+        vertex_normals(p, &faces),
+        tape.constant(tensor::<f64>(&su.colors)),
+        tape.constant(tensor::<f64>(&su.rows)),
+        faces,
+        &su.s,
+    )
+    .unwrap();
+    let wt = tape.constant(ArrayD::from_shape_vec(IxDyn(&[8, 8, 4]), w).unwrap());
+    let grads = tape.backward((img * wt).sum()).unwrap();
+    let gp: Vec<f64> = grads.get(p).unwrap().iter().copied().collect();
+    assert_eq!(gp, g.unwrap().0);
+}

@@ -151,6 +151,13 @@ fn term(
     (out, g_c)
 }
 
+/// Adds `v` to row `i` of a light-rows gradient (empty when the rows need none).
+fn add_row(gr: &mut [V3], i: usize, v: V3) {
+    if let Some(r) = gr.get_mut(i) {
+        acc3(r, v);
+    }
+}
+
 /// The scene's lights with their parameter rows (values of the light-rows input).
 #[derive(Clone, Debug)]
 pub struct LightSet<'a> {
@@ -234,7 +241,7 @@ impl<'a> LightSet<'a> {
                     let ge = mul3(g, albedo);
                     let mut gy = [0.0; 9];
                     for j in 0..9 {
-                        acc3(&mut gr[o + j], scale3(ge, y[j]));
+                        add_row(gr, o + j, scale3(ge, y[j]));
                         gy[j] = dot3(ge, self.rows[o + j]);
                     }
                     let gn = sh_eval_vjp(n, gy);
@@ -254,7 +261,7 @@ impl<'a> LightSet<'a> {
                 LightKind::Ambient => {
                     col = add3(col, mul3(ka, r[o]));
                     if let (Some(g), Some(gr)) = (g, grow.as_deref_mut()) {
-                        acc3(&mut gr[o], mul3(g, ka));
+                        add_row(gr, o, mul3(g, ka));
                         if m.ka.is_none() {
                             acc3(&mut acc[3], mul3(g, r[o]));
                         }
@@ -277,12 +284,12 @@ impl<'a> LightSet<'a> {
                     if let (Some(_), Some(gr), Some(sg)) =
                         (g, grow.as_deref_mut(), sg.as_deref_mut())
                     {
-                        acc3(&mut gr[o + 1], g_c);
+                        add_row(gr, o + 1, g_c);
                         let g_raw = normalize3_vjp(llen, l, acc[2], SAFE_EPS);
                         if *kind == LightKind::Directional {
-                            acc3(&mut gr[o], scale3(g_raw, -1.0));
+                            add_row(gr, o, scale3(g_raw, -1.0));
                         } else {
-                            acc3(&mut gr[o], g_raw);
+                            add_row(gr, o, g_raw);
                             acc3(&mut sg.x, scale3(g_raw, -1.0));
                         }
                     }
@@ -312,7 +319,7 @@ impl<'a> LightSet<'a> {
                     if let (Some(_), Some(gr), Some(sg)) =
                         (g, grow.as_deref_mut(), sg.as_deref_mut())
                     {
-                        acc3(&mut gr[o + 3], scale3(g_c, f));
+                        add_row(gr, o + 3, scale3(g_c, f));
                         let g_f = dot3(g_c, r[o + 3]);
                         let mut g_raw = normalize3_vjp(rl, l, acc[2], SAFE_EPS);
                         let r5 = r3 * rl * rl;
@@ -321,13 +328,15 @@ impl<'a> LightSet<'a> {
                             add3(scale3(nl, -g_f / r3), scale3(lraw, -3.0 * g_f * k / r5)),
                         );
                         let g_nl = scale3(lraw, -g_f / r3);
-                        acc3(&mut gr[o], g_raw);
-                        acc3(
-                            &mut gr[o + 1],
+                        add_row(gr, o, g_raw);
+                        add_row(
+                            gr,
+                            o + 1,
                             add3(cross3(r[o + 2], g_nl), scale3(g_raw, ab[0])),
                         );
-                        acc3(
-                            &mut gr[o + 2],
+                        add_row(
+                            gr,
+                            o + 2,
                             add3(cross3(g_nl, r[o + 1]), scale3(g_raw, ab[1])),
                         );
                         acc3(&mut sg.x, scale3(g_raw, -1.0));
