@@ -53,7 +53,7 @@ best() { # best of 3 wall times of a command, in seconds
   local b=1e9
   for _ in 1 2 3; do
     local t0=$(date +%s.%N); "$@" >/dev/null 2>&1; local t1=$(date +%s.%N)
-    b=$(python3 -c "print(min($b, $t1 - $t0))")
+    b=$(python3 -c "print(round(min($b, $t1 - $t0), 3))")
   done
   echo "$b"
 }
