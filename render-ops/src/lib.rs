@@ -42,6 +42,7 @@ pub mod obj;
 pub mod pipeline;
 pub mod raster;
 pub mod rasterize;
+pub mod raytrace;
 mod scatter;
 pub mod scene;
 pub mod shade;

@@ -29,6 +29,7 @@ use crate::boundary::{self, BoundarySettings};
 use crate::error::RenderError;
 use crate::raster::RasterSettings;
 use crate::rasterize::{rasterize, render_attributes, Rasterized};
+use crate::raytrace::{raytrace, RaytraceSettings};
 use crate::scene::{Method, Raster};
 use crate::soft::{
     self, Coverage, DibrSettings, SoftBlendSettings, SoftSettings, SoftStageSettings,
@@ -44,6 +45,9 @@ pub enum Kind {
     Boundary,
     /// Probabilistic coverage of every face within a cut-off distance.
     Soft,
+    /// Monte Carlo ray tracing of the box-filtered image with shadows; boundary terms by edge
+    /// sampling.
+    RayTraced,
 }
 
 /// Which gradients of a method are those of its own forward (exact), and which approximate
@@ -113,6 +117,11 @@ impl Method {
                 Kind::Boundary,
                 e(true, true, true),
                 "de La Gorce et al., TPAMI 2011 (DEODR)",
+            ),
+            Method::Raytrace => (
+                Kind::RayTraced,
+                e(true, true, true),
+                "Li et al., SIGGRAPH Asia 2018 (edge sampling, redner)",
             ),
         };
         MethodInfo {
@@ -193,6 +202,16 @@ pub struct MethodSettings {
     pub near: f64,
     /// Far plane distance (SoftRas's `z01`).
     pub far: f64,
+    /// `raytrace`: samples per pixel.
+    pub spp: usize,
+    /// `raytrace`: seed.
+    pub seed: u64,
+    /// `raytrace`: primary edge samples (`None`: one per pixel).
+    pub edge_samples: Option<usize>,
+    /// `raytrace`: shadow-edge samples (`None`: one per pixel).
+    pub shadow_edge_samples: Option<usize>,
+    /// `raytrace`: area-light edge samples per pixel sample.
+    pub area_edge_samples: usize,
 }
 
 impl MethodSettings {
@@ -227,6 +246,30 @@ impl MethodSettings {
             overdraw_px: r.overdraw_px,
             near,
             far,
+            spp: r.spp as usize,
+            seed: r.seed,
+            edge_samples: r.edge_samples.map(|n| n as usize),
+            shadow_edge_samples: r.shadow_edge_samples.map(|n| n as usize),
+            area_edge_samples: r.area_edge_samples as usize,
+        }
+    }
+
+    /// The ray tracer's settings (unlit, no lights: the caller sets the eye, reflection and
+    /// lights for a lit scene).
+    pub fn raytrace(&self) -> RaytraceSettings {
+        let v = &self.view;
+        let bg = v.background_of::<f64>(3);
+        let px = v.width * v.height;
+        RaytraceSettings {
+            spp: self.spp,
+            seed: self.seed,
+            background: [bg[0], bg[1], bg[2]],
+            near: self.near,
+            far: self.far,
+            primary_edge_samples: self.edge_samples.unwrap_or(px),
+            shadow_edge_samples: self.shadow_edge_samples.unwrap_or(px),
+            area_edge_samples: self.area_edge_samples,
+            ..RaytraceSettings::new(v.width, v.height)
         }
     }
 
@@ -355,6 +398,15 @@ pub fn render_vertex_colors<'t, T: Real>(
             let alpha = soft::dibr_alpha(clip, faces, &s.dibr())?;
             soft::dibr::composite(hard, alpha)
         }
+        Method::Raytrace => {
+            // Unlit: the world positions only feed shadows and area lights (none here).
+            let t = clip.tape();
+            let v = clip.shape().first().copied().unwrap_or(0);
+            let world = clip.slice(1, 0, 3);
+            let normals = t.constant(ndarray::ArrayD::zeros(ndarray::IxDyn(&[v, 3])));
+            let lights = t.constant(ndarray::ArrayD::zeros(ndarray::IxDyn(&[0, 3])));
+            raytrace(clip, world, normals, colors, lights, faces, &s.raytrace())
+        }
     }
 }
 
@@ -418,6 +470,11 @@ pub fn render_fragments<'t, T: Real>(
             let (image, r) = hard(shader)?;
             boundary::deodr_antialias(image, &r, clip, &s.boundary())
         }
+        Method::Raytrace => Err(RenderError::Unsupported(
+            "raytrace shades its own samples (built-in shading: Scene::render, \
+             raytrace::raytrace); per-fragment shaders are not composed with it yet"
+                .into(),
+        )),
         Method::SoftRas => {
             let frags = soft::soft_fragments(clip, faces, &s.soft_stage())?;
             let col = shader(&frags.raster)?;

@@ -10,7 +10,8 @@ use ndarray::{ArrayD, IxDyn};
 use crate::error::RenderError;
 use crate::methods::{render_fragments, render_vertex_colors, MethodSettings, ViewSettings};
 use crate::raster::RasterSettings;
-use crate::scene::Scene;
+use crate::raytrace::{raytrace, LightKind, RaytraceSettings, Reflection};
+use crate::scene::{Light, Scene};
 use crate::shade::stage::{texture_rgb, SceneShading, SCENE_SAMPLER};
 use crate::shade::{fragment_inputs, vertex_normals, MeshAttributes};
 use crate::texture::Texture;
@@ -181,6 +182,9 @@ impl<T: Real> Scene<T> {
             .tape()
             .constant(ArrayD::from_shape_vec(IxDyn(&[3]), kd.to_vec()).expect("3"));
         let s = self.method_settings();
+        if s.method == crate::scene::Method::Raytrace {
+            return self.render_raytrace(vars, clip, kd, &s);
+        }
         let per_vertex = !self.shading(vars).is_lit() && vars.texture.is_none();
         if per_vertex {
             return render_vertex_colors(clip, self.vertex_colors(vars, kd)?, faces, &s);
@@ -318,5 +322,74 @@ impl<T: Real> Scene<T> {
             let albedo = f.attribute("color").expect("set above") * kd * tex;
             shading.apply(f.position, f.normal, albedo, f.eye)
         })
+    }
+}
+
+/// The `raytrace` method on a scene.
+impl<T: Real> Scene<T> {
+    /// The ray tracer's settings for this scene: the registry's (`raster` block, size,
+    /// background, clip planes) with the scene's eye, material and light kinds.
+    pub fn raytrace_settings(&self) -> RaytraceSettings {
+        let m = &self.desc.material;
+        RaytraceSettings {
+            eye: self.desc.camera.eye,
+            reflection: Reflection {
+                shading: m.shading,
+                ks: m.ks,
+                shininess: m.shininess,
+                ka: m.ka,
+            },
+            lights: self
+                .desc
+                .lights
+                .iter()
+                .map(|l| match l {
+                    Light::Ambient { .. } => LightKind::Ambient,
+                    Light::Directional { .. } => LightKind::Directional,
+                    Light::Point { .. } => LightKind::Point,
+                    Light::Area { .. } => LightKind::Area,
+                    Light::Sh { .. } => LightKind::Sh,
+                })
+                .collect(),
+            ..self.method_settings().raytrace()
+        }
+    }
+
+    /// Ray-traced render ([`crate::raytrace`]): albedo `kd` times the vertex colours,
+    /// area-weighted vertex normals, the scene's lights (or `vars.lights`) with shadows.
+    /// Textures are not supported yet (`Unsupported`).
+    fn render_raytrace<'t>(
+        &self,
+        vars: &SceneVars<'t, T>,
+        clip: Var<'t, T>,
+        kd: Var<'t, T>,
+        _s: &MethodSettings,
+    ) -> Result<Var<'t, T>, RenderError> {
+        if vars.texture.is_some() {
+            return Err(RenderError::Unsupported(
+                "raster.method 'raytrace' does not sample textures yet (use vertex colours)".into(),
+            ));
+        }
+        let t = vars.positions.tape();
+        let faces = Arc::new(self.mesh.faces.clone());
+        let normals = vertex_normals(vars.positions, &faces);
+        let albedo = vars.colors * kd;
+        let lights = match vars.lights {
+            Some(l) => l,
+            None => {
+                let rows = crate::shade::lights::scene_light_rows(&self.desc.lights);
+                let data = rows.iter().flatten().map(|&x| T::from_f64c(x)).collect();
+                t.constant(ArrayD::from_shape_vec(IxDyn(&[rows.len(), 3]), data).expect("n x 3"))
+            }
+        };
+        raytrace(
+            clip,
+            vars.positions,
+            normals,
+            albedo,
+            lights,
+            faces,
+            &self.raytrace_settings(),
+        )
     }
 }

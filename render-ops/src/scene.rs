@@ -165,6 +165,15 @@ keyed_de! {
     de_eps: f64 = ".eps";
     de_delta: f64 = ".delta";
     de_overdraw: f64 = ".overdraw_px";
+    de_spp: u32 = ".spp";
+    de_seed: u64 = ".seed";
+    de_edge_samples: Option<u32> = ".edge_samples";
+    de_shadow_edge_samples: Option<u32> = ".shadow_edge_samples";
+    de_area_edge_samples: u32 = ".area_edge_samples";
+    de_corner: [f64; 3] = ".corner";
+    de_edge_u: [f64; 3] = ".edge_u";
+    de_edge_v: [f64; 3] = ".edge_v";
+    de_radiance: [f64; 3] = ".radiance";
 }
 
 /// `lights`: each element on its own so that errors say which (`lights[2].color: ...`).
@@ -288,6 +297,24 @@ pub enum Light {
         #[serde(deserialize_with = "de_color")]
         color: [f64; 3],
     },
+    /// A parallelogram emitter `corner + a edge_u + b edge_v` (`a`, `b` in [0, 1]) of
+    /// uniform radiance, emitting from the side of `edge_u x edge_v`; used by the `raytrace`
+    /// method (sampled by area, soft shadows), refused by the raster methods. Falloff: see
+    /// docs/CONVENTIONS.md.
+    Area {
+        /// One corner (world).
+        #[serde(deserialize_with = "de_corner")]
+        corner: [f64; 3],
+        /// First edge from the corner (world).
+        #[serde(deserialize_with = "de_edge_u")]
+        edge_u: [f64; 3],
+        /// Second edge from the corner (world), not parallel to `edge_u`.
+        #[serde(deserialize_with = "de_edge_v")]
+        edge_v: [f64; 3],
+        /// Linear RGB radiance, >= 0.
+        #[serde(deserialize_with = "de_radiance")]
+        radiance: [f64; 3],
+    },
     /// Order-2 spherical-harmonics lighting: 9 rows of [r, g, b] in the order and basis of
     /// docs/CONVENTIONS.md.
     Sh {
@@ -304,6 +331,7 @@ impl Light {
             Light::Ambient { .. } => "ambient",
             Light::Directional { .. } => "directional",
             Light::Point { .. } => "point",
+            Light::Area { .. } => "area",
             Light::Sh { .. } => "sh",
         }
     }
@@ -395,10 +423,15 @@ pub enum Method {
     /// DEODR: discontinuity edge overdraw (de La Gorce et al.).
     #[serde(rename = "deodr")]
     Deodr,
+    /// Ray tracing with edge sampling (Li et al. 2018): shadows and their gradients.
+    #[serde(rename = "raytrace")]
+    Raytrace,
 }
 
 impl Method {
-    /// Every method, in the order of docs/CONVENTIONS.md.
+    /// The seven raster methods, in the order of docs/CONVENTIONS.md (the registry's tests,
+    /// benches and face fits iterate these; [`Method::Raytrace`] renders whole scenes, see
+    /// [`Method::RAY`]).
     pub const ALL: [Method; 7] = [
         Method::Hard,
         Method::TfMesh,
@@ -408,6 +441,9 @@ impl Method {
         Method::Dibr,
         Method::Deodr,
     ];
+
+    /// The ray-traced methods.
+    pub const RAY: [Method; 1] = [Method::Raytrace];
 
     /// The JSON name.
     pub fn name(self) -> &'static str {
@@ -419,12 +455,16 @@ impl Method {
             Method::SoftRas => "softras",
             Method::Dibr => "dibr",
             Method::Deodr => "deodr",
+            Method::Raytrace => "raytrace",
         }
     }
 
     /// Parses a JSON name (e.g. from a command line).
     pub fn from_name(name: &str) -> Option<Method> {
-        Method::ALL.into_iter().find(|m| m.name() == name)
+        Method::ALL
+            .into_iter()
+            .chain(Method::RAY)
+            .find(|m| m.name() == name)
     }
 
     /// Soft methods (softras, dibr) aggregate every face within their cut-off per pixel; the
@@ -480,6 +520,23 @@ pub struct Raster {
     /// DEODR edge overdraw ramp width in pixels, >= 0 (default 1.0).
     #[serde(deserialize_with = "de_overdraw")]
     pub overdraw_px: f64,
+    /// `raytrace`: samples per pixel, >= 1 (default 4).
+    #[serde(deserialize_with = "de_spp")]
+    pub spp: u32,
+    /// `raytrace`: seed of the random numbers (default 0).
+    #[serde(deserialize_with = "de_seed")]
+    pub seed: u64,
+    /// `raytrace`: primary (silhouette) edge samples per gradient; null (default): one per
+    /// pixel.
+    #[serde(deserialize_with = "de_edge_samples")]
+    pub edge_samples: Option<u32>,
+    /// `raytrace`: shadow-edge samples of point and directional lights per gradient; null
+    /// (default): one per pixel.
+    #[serde(deserialize_with = "de_shadow_edge_samples")]
+    pub shadow_edge_samples: Option<u32>,
+    /// `raytrace`: area-light edge samples per pixel sample and area light (default 1).
+    #[serde(deserialize_with = "de_area_edge_samples")]
+    pub area_edge_samples: u32,
 }
 
 impl Default for Raster {
@@ -495,6 +552,11 @@ impl Default for Raster {
             eps: 1e-3,
             delta: DEFAULT_DIBR_DELTA,
             overdraw_px: 1.0,
+            spp: 4,
+            seed: 0,
+            edge_samples: None,
+            shadow_edge_samples: None,
+            area_edge_samples: 1,
         }
     }
 }
@@ -652,6 +714,28 @@ impl SceneDesc {
                     c.finite(&key("position"), position)?;
                     c.non_negative(&key("color"), color)?;
                 }
+                Light::Area {
+                    corner,
+                    edge_u,
+                    edge_v,
+                    radiance,
+                } => {
+                    c.finite(&key("corner"), corner)?;
+                    c.finite(&key("edge_u"), edge_u)?;
+                    c.finite(&key("edge_v"), edge_v)?;
+                    c.non_negative(&key("radiance"), radiance)?;
+                    let n = [
+                        edge_u[1] * edge_v[2] - edge_u[2] * edge_v[1],
+                        edge_u[2] * edge_v[0] - edge_u[0] * edge_v[2],
+                        edge_u[0] * edge_v[1] - edge_u[1] * edge_v[0],
+                    ];
+                    if n.iter().all(|&x| x == 0.0) {
+                        return Err(c.fail(
+                            key("edge_v"),
+                            "must not be parallel to edge_u (the light has no area)",
+                        ));
+                    }
+                }
                 Light::Sh { coeffs } => {
                     has_sh = true;
                     if coeffs.len() != 9 {
@@ -702,6 +786,20 @@ impl SceneDesc {
         c.finite("raster.eps", &[r.eps])?;
         c.positive("raster.delta", r.delta)?;
         c.non_negative("raster.overdraw_px", &[r.overdraw_px])?;
+        if r.spp == 0 || r.spp > 65536 {
+            return Err(c.fail("raster.spp", format!("{} must be 1 to 65536", r.spp)));
+        }
+        if r.method != Method::Raytrace {
+            if let Some(i) = self.lights.iter().position(|l| l.kind() == "area") {
+                return Err(c.fail(
+                    format!("lights[{i}]"),
+                    format!(
+                        "area lights need raster.method 'raytrace' (got '{}')",
+                        r.method
+                    ),
+                ));
+            }
+        }
         Ok(())
     }
 
@@ -910,7 +1008,8 @@ mod tests {
                 gamma: 3e-4,
                 eps: 1e-2,
                 delta: 5e-5,
-                overdraw_px: 0.5
+                overdraw_px: 0.5,
+                ..Raster::default()
             }
         );
         assert_eq!(SceneDesc::parse(&d.to_json_pretty(), "x").unwrap(), d);
@@ -920,6 +1019,49 @@ mod tests {
                 SceneDesc::parse(&with("raster", &format!("\"method\": \"{m}\"")), "s").unwrap();
             assert_eq!(d.raster.method, m);
         }
+    }
+
+    #[test]
+    fn area_lights_and_the_ray_tracer_keys() {
+        let area = |edge_v: &str| {
+            with(
+                "",
+                &format!(
+                    r#""lights": [{{"type": "area", "corner": [0, 2, 0], "edge_u": [1, 0, 0], "edge_v": {edge_v}, "radiance": [3, 3, 3]}}]"#
+                ),
+            )
+        };
+        let text = area("[0, 0, 1]");
+        let rt = |t: &str| {
+            let mut v: serde_json::Value = serde_json::from_str(t).unwrap();
+            v["raster"] = serde_json::json!({"method": "raytrace", "spp": 16, "seed": 7,
+                "edge_samples": 100, "shadow_edge_samples": 200, "area_edge_samples": 2});
+            v.to_string()
+        };
+        let d = SceneDesc::parse(&rt(&text), "s.json").unwrap();
+        d.validate("s.json").unwrap();
+        assert_eq!(d.lights[0].kind(), "area");
+        assert_eq!(d.raster.method, Method::Raytrace);
+        assert_eq!(Method::from_name("raytrace"), Some(Method::Raytrace));
+        assert_eq!(
+            (d.raster.spp, d.raster.seed, d.raster.edge_samples),
+            (16, 7, Some(100))
+        );
+        assert_eq!(
+            (d.raster.shadow_edge_samples, d.raster.area_edge_samples),
+            (Some(200), 2)
+        );
+        assert_eq!(SceneDesc::parse(&d.to_json_pretty(), "x").unwrap(), d);
+        // Raster methods refuse area lights; a flat light is refused.
+        let (k, m) = invalid(&text);
+        assert_eq!(k, "lights[0]");
+        assert!(m.contains("need raster.method 'raytrace'"), "{m}");
+        let flat = rt(&area("[2, 0, 0]"));
+        let (k, m) = invalid(&flat);
+        assert_eq!(k, "lights[0].edge_v");
+        assert!(m.contains("parallel"), "{m}");
+        let (k, _) = invalid(&rt(&text).replace(r#""spp":16"#, r#""spp":0"#));
+        assert_eq!(k, "raster.spp");
     }
 
     #[test]
@@ -986,7 +1128,7 @@ mod tests {
             "",
             r#""lights": [{"type": "ambient", "color": [1, 1, 1]}, {"type": "spot", "color": [1, 1, 1]}]"#,
         ));
-        assert!(e.contains("lights[1]: unknown variant `spot`, expected one of `ambient`, `directional`, `point`, `sh`"), "{e}");
+        assert!(e.contains("lights[1]: unknown variant `spot`, expected one of `ambient`, `directional`, `point`, `area`, `sh`"), "{e}");
         let e = parse_err(&with(
             "",
             r#""lights": [{"type": "ambient", "colour": [1, 1, 1]}]"#,

@@ -309,6 +309,18 @@ pub fn method_configs() -> Vec<MethodConfig> {
                     });
                 }
             }
+            // Not in `Method::ALL` (the ray tracer has no texture path for the textured
+            // scene yet); its sweep, for when it joins: samples per pixel.
+            Method::Raytrace => {
+                for spp in [1, 4, 16] {
+                    r.spp = spp;
+                    out.push(MethodConfig {
+                        raster: r,
+                        params: json!({ "spp": spp }),
+                        default: spp == 4,
+                    });
+                }
+            }
             Method::Deodr => {
                 for px in [0.5, 1.0, 2.0] {
                     r.overdraw_px = px;

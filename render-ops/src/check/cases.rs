@@ -145,6 +145,12 @@ fn method_image<'t, T: Real>(
         Method::TfMesh => tf_mesh(clip, colors, faces(), &approx),
         Method::OpenDr => opendr(clip, colors, faces(), &approx),
         Method::Nmr => nmr(clip, colors, faces(), &approx),
+        Method::Raytrace => crate::methods::render_vertex_colors(
+            clip,
+            colors,
+            faces(),
+            &crate::methods::MethodSettings::new(method, SIZE, SIZE),
+        ),
     }
 }
 

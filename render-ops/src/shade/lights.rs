@@ -149,6 +149,9 @@ impl<'t, T: Real> Lights<'t, T> {
                 scene::Light::Point { position, color } => out
                     .point
                     .push(PointLight::constant(tape, *position, *color)),
+                // Area lights are the ray tracer's (`crate::raytrace`); the scene refuses them
+                // with the raster methods.
+                scene::Light::Area { .. } => {}
                 scene::Light::Sh { coeffs } => {
                     let mut c = [[0.0; 3]; 9];
                     for (dst, src) in c.iter_mut().zip(coeffs) {
@@ -192,6 +195,9 @@ impl<'t, T: Real> Lights<'t, T> {
                         color: row(1),
                     })
                 }
+                scene::Light::Area { .. } => {
+                    row(4);
+                }
                 scene::Light::Sh { .. } => out.sh = Some(ShLight { coeffs: row(9) }),
             }
         }
@@ -215,7 +221,8 @@ impl<'t, T: Real> Lights<'t, T> {
 
 /// Every light parameter of a scene as rows of three numbers, in scene order: an ambient
 /// light gives its `color`; a directional light its `direction`, then `color`; a point light
-/// its `position`, then `color`; an SH light its 9 coefficient rows. This is the layout of the
+/// its `position`, then `color`; an area light its `corner`, `edge_u`, `edge_v`, `radiance`;
+/// an SH light its 9 coefficient rows. This is the layout of the
 /// scene input `lights` `[n, 3]` ([`crate::pipeline::SceneVars::lights`]).
 pub fn scene_light_rows(lights: &[scene::Light]) -> Vec<[f64; 3]> {
     let mut out = Vec::new();
@@ -230,6 +237,12 @@ pub fn scene_light_rows(lights: &[scene::Light]) -> Vec<[f64; 3]> {
                 out.push(*position);
                 out.push(*color);
             }
+            scene::Light::Area {
+                corner,
+                edge_u,
+                edge_v,
+                radiance,
+            } => out.extend([*corner, *edge_u, *edge_v, *radiance]),
             scene::Light::Sh { coeffs } => out.extend(coeffs.iter().copied()),
         }
     }

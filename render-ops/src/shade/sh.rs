@@ -51,7 +51,7 @@ pub fn sh_eval<T: Real>(n: [T; 3]) -> [T; 9] {
 
 /// Vector-Jacobian product of [`sh_eval`]: `dL/dn` from `dL/dY`.
 #[inline(always)]
-fn sh_eval_vjp<T: Real>(n: [T; 3], g: [T; 9]) -> [T; 3] {
+pub(crate) fn sh_eval_vjp<T: Real>(n: [T; 3], g: [T; 9]) -> [T; 3] {
     let (x, y, z) = (n[0], n[1], n[2]);
     let c = |v: f64| T::from_f64c(v);
     let (c1, c2, c3, c4) = (c(SH_C1), c(SH_C2), c(SH_C3), c(SH_C4));

@@ -1,0 +1,400 @@
+//! A bounding volume hierarchy over triangles, built with the binned surface area heuristic
+//! (I. Wald, "On fast construction of SAH-based bounding volume hierarchies", IEEE RT 2007:
+//! 16 bins per axis over the centroids, a split where `C = A_L N_L + A_R N_R` is least, leaves
+//! of at most 4 triangles or where no split beats the leaf). Subtrees of more than
+//! [`PARALLEL_MIN`] triangles build their two children in parallel (`rayon::join`); the tree
+//! depends only on the triangles (the split choice, the partition and the node order are the
+//! same on any thread count), so traversal results are deterministic.
+//!
+//! No crate: `bvh` (0.10) and `bvh-arena` build over `f32` AABBs with their own shape traits,
+//! so hits would be `f32` and their barycentrics would not match the watertight `f64` test; the
+//! ~250 lines here keep one `f64` triangle layout shared with [`super::intersect`].
+
+use rayon::prelude::*;
+
+use super::intersect::{Hit, Ray, V3};
+
+/// Subtrees with more triangles build their children in parallel.
+pub const PARALLEL_MIN: usize = 4096;
+const BINS: usize = 16;
+const LEAF_MAX: usize = 4;
+
+#[derive(Clone, Copy, Debug)]
+struct Aabb {
+    lo: V3,
+    hi: V3,
+}
+
+impl Aabb {
+    const EMPTY: Aabb = Aabb {
+        lo: [f64::INFINITY; 3],
+        hi: [f64::NEG_INFINITY; 3],
+    };
+    fn grow(&mut self, p: &V3) {
+        for k in 0..3 {
+            self.lo[k] = self.lo[k].min(p[k]);
+            self.hi[k] = self.hi[k].max(p[k]);
+        }
+    }
+    fn join(&mut self, o: &Aabb) {
+        for k in 0..3 {
+            self.lo[k] = self.lo[k].min(o.lo[k]);
+            self.hi[k] = self.hi[k].max(o.hi[k]);
+        }
+    }
+    fn area(&self) -> f64 {
+        let d = [0, 1, 2].map(|k| (self.hi[k] - self.lo[k]).max(0.0));
+        d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+    }
+}
+
+/// One node: a box and either two children (`count == 0`; the left child follows the node,
+/// the right one is at `index`) or `count` triangles from `index` in [`Bvh::order`].
+#[derive(Clone, Copy, Debug)]
+struct Node {
+    bounds: Aabb,
+    index: u32,
+    count: u32,
+}
+
+/// A BVH over a triangle soup, holding its own copy of the triangles in leaf order.
+#[derive(Clone, Debug)]
+pub struct Bvh {
+    nodes: Vec<Node>,
+    /// Face index of each triangle slot.
+    pub order: Vec<u32>,
+    tris: Vec<[V3; 3]>,
+}
+
+struct Prim {
+    bounds: Aabb,
+    centroid: V3,
+    face: u32,
+}
+
+fn build(prims: &mut [Prim]) -> Vec<Node> {
+    let mut bounds = Aabb::EMPTY;
+    let mut cb = Aabb::EMPTY;
+    for p in prims.iter() {
+        bounds.join(&p.bounds);
+        cb.grow(&p.centroid);
+    }
+    let leaf = |bounds| {
+        vec![Node {
+            bounds,
+            index: 0,
+            count: prims.len() as u32,
+        }]
+    };
+    if prims.len() <= LEAF_MAX {
+        return leaf(bounds);
+    }
+    // Binned SAH over the centroid bounds, every axis.
+    let mut best: Option<(f64, usize, usize)> = None;
+    for axis in 0..3 {
+        let (lo, hi) = (cb.lo[axis], cb.hi[axis]);
+        if !(hi > lo) {
+            continue;
+        }
+        let scale = BINS as f64 / (hi - lo);
+        let bin_of = |c: f64| (((c - lo) * scale) as usize).min(BINS - 1);
+        let mut bb = [Aabb::EMPTY; BINS];
+        let mut n = [0usize; BINS];
+        for p in prims.iter() {
+            let b = bin_of(p.centroid[axis]);
+            bb[b].join(&p.bounds);
+            n[b] += 1;
+        }
+        let mut right_area = [0.0; BINS];
+        let mut acc = Aabb::EMPTY;
+        let mut cnt = 0;
+        let mut right_n = [0usize; BINS];
+        for b in (1..BINS).rev() {
+            acc.join(&bb[b]);
+            cnt += n[b];
+            right_area[b] = acc.area();
+            right_n[b] = cnt;
+        }
+        let mut left = Aabb::EMPTY;
+        let mut ln = 0;
+        for b in 0..BINS - 1 {
+            left.join(&bb[b]);
+            ln += n[b];
+            if ln == 0 || right_n[b + 1] == 0 {
+                continue;
+            }
+            let cost = left.area() * ln as f64 + right_area[b + 1] * right_n[b + 1] as f64;
+            if best.is_none_or(|(c, _, _)| cost < c) {
+                best = Some((cost, axis, b));
+            }
+        }
+    }
+    let leaf_cost = bounds.area() * prims.len() as f64;
+    let Some((cost, axis, split)) = best else {
+        return leaf(bounds);
+    };
+    if prims.len() <= 16 && cost >= leaf_cost {
+        return leaf(bounds);
+    }
+    let (lo, hi) = (cb.lo[axis], cb.hi[axis]);
+    let scale = BINS as f64 / (hi - lo);
+    let goes_left = |p: &Prim| (((p.centroid[axis] - lo) * scale) as usize).min(BINS - 1) <= split;
+    // Stable in-place partition (order of each side as before): deterministic.
+    let mut mid = 0;
+    for i in 0..prims.len() {
+        if goes_left(&prims[i]) {
+            prims[mid..=i].rotate_right(1);
+            mid += 1;
+        }
+    }
+    let (l, r) = prims.split_at_mut(mid);
+    let (left, right) = if l.len() + r.len() > PARALLEL_MIN {
+        rayon::join(|| build(l), || build(r))
+    } else {
+        (build(l), build(r))
+    };
+    let mut nodes = Vec::with_capacity(1 + left.len() + right.len());
+    nodes.push(Node {
+        bounds,
+        index: (1 + left.len()) as u32,
+        count: 0,
+    });
+    nodes.extend(left);
+    nodes.extend(right);
+    nodes
+}
+
+/// Turns the subtree-relative indices of `build` into absolute ones: child pointers get the
+/// subtree's offset, leaves their first triangle slot.
+fn relocate(nodes: &mut [Node]) {
+    fn walk(nodes: &mut [Node], at: usize, base: usize, first: &mut u32) {
+        let n = nodes[at];
+        if n.count > 0 {
+            nodes[at].index = *first;
+            *first += n.count;
+            return;
+        }
+        let right = at + n.index as usize;
+        nodes[at].index = (base + right) as u32;
+        walk(nodes, at + 1, base, first);
+        walk(nodes, right, base, first);
+    }
+    let mut first = 0;
+    if !nodes.is_empty() {
+        walk(nodes, 0, 0, &mut first);
+    }
+}
+
+impl Bvh {
+    /// Builds the hierarchy over `faces` of `positions`. Triangles with a non-finite vertex
+    /// are left out (they can never be hit).
+    pub fn new(positions: &[V3], faces: &[[u32; 3]]) -> Self {
+        let mut prims: Vec<Prim> = faces
+            .par_iter()
+            .enumerate()
+            .filter_map(|(f, tri)| {
+                let v = tri.map(|i| positions[i as usize]);
+                if !v.iter().flatten().all(|x| x.is_finite()) {
+                    return None;
+                }
+                let mut b = Aabb::EMPTY;
+                v.iter().for_each(|p| b.grow(p));
+                let c = [0, 1, 2].map(|k| (v[0][k] + v[1][k] + v[2][k]) / 3.0);
+                Some(Prim {
+                    bounds: b,
+                    centroid: c,
+                    face: f as u32,
+                })
+            })
+            .collect();
+        let mut nodes = if prims.is_empty() {
+            Vec::new()
+        } else {
+            build(&mut prims)
+        };
+        relocate(&mut nodes);
+        let order: Vec<u32> = prims.iter().map(|p| p.face).collect();
+        let tris = order
+            .iter()
+            .map(|&f| faces[f as usize].map(|i| positions[i as usize]))
+            .collect();
+        Bvh { nodes, order, tris }
+    }
+
+    /// Number of triangles in the tree.
+    pub fn len(&self) -> usize {
+        self.order.len()
+    }
+
+    /// No triangles.
+    pub fn is_empty(&self) -> bool {
+        self.order.is_empty()
+    }
+
+    #[inline]
+    fn slab(&self, b: &Aabb, r: &Ray, t_max: f64) -> Option<f64> {
+        let mut t0 = 0.0f64;
+        let mut t1 = t_max;
+        for k in 0..3 {
+            let a = (b.lo[k] - r.origin[k]) * r.inv_dir[k];
+            let c = (b.hi[k] - r.origin[k]) * r.inv_dir[k];
+            // NaN (0 * inf on a slab plane) keeps the other bound: max/min ignore NaN.
+            let (n, f) = if a <= c { (a, c) } else { (c, a) };
+            t0 = t0.max(n);
+            t1 = t1.min(f);
+        }
+        // Conservative: a small relative slack so rays grazing a box face still enter it.
+        (t0 <= t1 * (1.0 + 4.0 * f64::EPSILON)).then_some(t0)
+    }
+
+    /// The nearest hit with `t_min < t < t_max`; ties in `t` go to the lower face index.
+    pub fn closest(&self, r: &Ray, t_min: f64, t_max: f64) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        let mut t_far = t_max;
+        self.walk(r, &mut t_far, |slot, t_far| {
+            if let Some((t, bary)) = r.intersect(&self.tris[slot], t_min, t_far.next_up()) {
+                let face = self.order[slot];
+                let better = match &best {
+                    None => true,
+                    Some(b) => t < b.t || (t == b.t && face < b.face),
+                };
+                if better && t < t_max {
+                    best = Some(Hit { t, bary, face });
+                    *t_far = t;
+                }
+            }
+            false
+        });
+        best
+    }
+
+    /// Whether anything lies on the ray with `t_min < t < t_max` (shadow rays).
+    pub fn occluded(&self, r: &Ray, t_min: f64, t_max: f64) -> bool {
+        let mut t_far = t_max;
+        let mut hit = false;
+        self.walk(r, &mut t_far, |slot, t_far| {
+            hit = r.intersect(&self.tris[slot], t_min, *t_far).is_some();
+            hit
+        });
+        hit
+    }
+
+    /// Front-to-back traversal; `leaf(slot, t_far)` returns true to stop.
+    #[inline]
+    fn walk(&self, r: &Ray, t_far: &mut f64, mut leaf: impl FnMut(usize, &mut f64) -> bool) {
+        if self.nodes.is_empty() || self.slab(&self.nodes[0].bounds, r, *t_far).is_none() {
+            return;
+        }
+        let mut stack = [0u32; 64];
+        let mut sp = 1;
+        while sp > 0 {
+            sp -= 1;
+            let n = &self.nodes[stack[sp] as usize];
+            if n.count > 0 {
+                for slot in n.index..n.index + n.count {
+                    if leaf(slot as usize, t_far) {
+                        return;
+                    }
+                }
+                continue;
+            }
+            let l = stack[sp] + 1;
+            let rr = n.index;
+            let tl = self.slab(&self.nodes[l as usize].bounds, r, *t_far);
+            let tr = self.slab(&self.nodes[rr as usize].bounds, r, *t_far);
+            // Push the farther child first so that the nearer one is visited first.
+            let order = match (tl, tr) {
+                (Some(a), Some(b)) if a <= b => [Some(rr), Some(l)],
+                (Some(_), Some(_)) => [Some(l), Some(rr)],
+                (Some(_), None) => [None, Some(l)],
+                (None, Some(_)) => [None, Some(rr)],
+                (None, None) => [None, None],
+            };
+            for c in order.into_iter().flatten() {
+                if sp < stack.len() {
+                    stack[sp] = c;
+                    sp += 1;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raytrace::rng::{Counter, Stream};
+
+    fn soup(n: usize, seed: u64) -> (Vec<V3>, Vec<[u32; 3]>) {
+        let mut c = Counter::new(seed, Stream::Pixel, 0);
+        let mut pos = Vec::new();
+        let mut faces = Vec::new();
+        for f in 0..n {
+            let centre = [
+                c.uniform() * 4.0 - 2.0,
+                c.uniform() * 4.0 - 2.0,
+                c.uniform() * 4.0 - 2.0,
+            ];
+            for _ in 0..3 {
+                pos.push([0, 1, 2].map(|k| centre[k] + 0.3 * (c.uniform() - 0.5)));
+            }
+            let b = 3 * f as u32;
+            faces.push([b, b + 1, b + 2]);
+        }
+        (pos, faces)
+    }
+
+    fn brute(pos: &[V3], faces: &[[u32; 3]], r: &Ray) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        for (f, tri) in faces.iter().enumerate() {
+            let v = tri.map(|i| pos[i as usize]);
+            if let Some((t, bary)) = r.intersect(&v, 1e-9, f64::INFINITY) {
+                if best.is_none_or(|b| t < b.t) {
+                    best = Some(Hit {
+                        t,
+                        bary,
+                        face: f as u32,
+                    });
+                }
+            }
+        }
+        best
+    }
+
+    #[test]
+    fn closest_and_occluded_agree_with_brute_force_for_any_thread_count() {
+        let (pos, faces) = soup(6000, 3);
+        let bvh = Bvh::new(&pos, &faces);
+        assert_eq!(bvh.len(), faces.len());
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let bvh1 = one.install(|| Bvh::new(&pos, &faces));
+        assert_eq!(bvh1.order, bvh.order);
+        let mut c = Counter::new(1, Stream::Pixel, 1);
+        for _ in 0..400 {
+            let o = [c.uniform() * 8.0 - 4.0, c.uniform() * 8.0 - 4.0, 5.0];
+            let d = [c.uniform() - 0.5, c.uniform() - 0.5, -1.0];
+            let r = Ray::new(o, d);
+            let a = bvh.closest(&r, 1e-9, f64::INFINITY);
+            let b = brute(&pos, &faces, &r);
+            assert_eq!(a.map(|h| (h.face, h.t)), b.map(|h| (h.face, h.t)));
+            assert_eq!(bvh.occluded(&r, 1e-9, f64::INFINITY), b.is_some());
+            if let Some(h) = b {
+                assert!(!bvh.occluded(&r, 1e-9, h.t * (1.0 - 1e-9)) || a.is_some());
+            }
+        }
+    }
+
+    #[test]
+    fn empty_and_non_finite_inputs() {
+        let bvh = Bvh::new(&[], &[]);
+        assert!(bvh.is_empty());
+        let r = Ray::new([0.0; 3], [0.0, 0.0, 1.0]);
+        assert!(bvh.closest(&r, 0.0, 1.0).is_none());
+        let pos = vec![[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [f64::NAN, 1.0, 1.0]];
+        let bvh = Bvh::new(&pos, &[[0, 1, 2]]);
+        assert!(bvh.is_empty());
+    }
+}

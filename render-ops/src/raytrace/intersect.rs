@@ -1,0 +1,157 @@
+//! Watertight ray-triangle intersection: S. Woop, C. Benthin, I. Wald, "Watertight
+//! ray/triangle intersection", JCGT 2(1), 2013. The ray is sheared so that it runs along +z
+//! through the origin; the triangle's 2D edge functions `U, V, W` then decide the hit, and a
+//! ray through a shared edge or vertex hits at least one of the triangles that share it (edge
+//! functions exactly zero count as inside). Everything is in `f64` (the paper's fallback
+//! precision), so no second evaluation is needed.
+
+/// A vector of three `f64`.
+pub type V3 = [f64; 3];
+
+/// A ray `origin + t dir` prepared for the watertight test (the shear of section 3).
+#[derive(Clone, Copy, Debug)]
+pub struct Ray {
+    /// Origin.
+    pub origin: V3,
+    /// Direction (any length; `t` is in its units).
+    pub dir: V3,
+    /// `1 / dir` per axis (slab tests).
+    pub inv_dir: V3,
+    k: [usize; 3],
+    shear: V3,
+}
+
+/// A hit: the distance along the ray and the barycentrics of the triangle's vertices.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    /// Ray parameter.
+    pub t: f64,
+    /// Barycentrics `(b0, b1, b2)`, summing to one; the hit is `sum b_i v_i`.
+    pub bary: V3,
+    /// Triangle (face) index.
+    pub face: u32,
+}
+
+impl Ray {
+    /// A ray from `origin` along `dir` (non-zero).
+    pub fn new(origin: V3, dir: V3) -> Self {
+        let a = dir.map(f64::abs);
+        let kz = if a[0] >= a[1] && a[0] >= a[2] {
+            0
+        } else if a[1] >= a[2] {
+            1
+        } else {
+            2
+        };
+        let mut kx = (kz + 1) % 3;
+        let mut ky = (kx + 1) % 3;
+        if dir[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        Ray {
+            origin,
+            dir,
+            inv_dir: dir.map(|d| 1.0 / d),
+            k: [kx, ky, kz],
+            shear: [dir[kx] / dir[kz], dir[ky] / dir[kz], 1.0 / dir[kz]],
+        }
+    }
+
+    /// The point at `t`.
+    pub fn at(&self, t: f64) -> V3 {
+        [
+            self.origin[0] + t * self.dir[0],
+            self.origin[1] + t * self.dir[1],
+            self.origin[2] + t * self.dir[2],
+        ]
+    }
+
+    /// The watertight test against triangle `v`: `Some((t, bary))` when the ray hits it with
+    /// `t_min < t < t_max`. Degenerate (zero-area in the ray's view) triangles never hit.
+    #[inline]
+    pub fn intersect(&self, v: &[V3; 3], t_min: f64, t_max: f64) -> Option<(f64, V3)> {
+        let [kx, ky, kz] = self.k;
+        let [sx, sy, sz] = self.shear;
+        let rel = |p: &V3| {
+            let a = [
+                p[0] - self.origin[0],
+                p[1] - self.origin[1],
+                p[2] - self.origin[2],
+            ];
+            (a[kx] - sx * a[kz], a[ky] - sy * a[kz], sz * a[kz])
+        };
+        let (ax, ay, az) = rel(&v[0]);
+        let (bx, by, bz) = rel(&v[1]);
+        let (cx, cy, cz) = rel(&v[2]);
+        let u = cx * by - cy * bx;
+        let vv = ax * cy - ay * cx;
+        let w = bx * ay - by * ax;
+        if (u < 0.0 || vv < 0.0 || w < 0.0) && (u > 0.0 || vv > 0.0 || w > 0.0) {
+            return None;
+        }
+        let det = u + vv + w;
+        if det == 0.0 || !det.is_finite() {
+            return None;
+        }
+        let t = (u * az + vv * bz + w * cz) / det;
+        if !(t > t_min && t < t_max) {
+            return None;
+        }
+        Some((t, [u / det, vv / det, w / det]))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hits_inside_misses_outside_and_reports_barycentrics() {
+        let tri = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+        let r = Ray::new([0.25, 0.5, 1.0], [0.0, 0.0, -2.0]);
+        let (t, b) = r.intersect(&tri, 0.0, f64::INFINITY).unwrap();
+        assert!((t - 0.5).abs() < 1e-15);
+        assert!((b[0] - 0.25).abs() < 1e-15 && (b[1] - 0.25).abs() < 1e-15);
+        assert!((b[2] - 0.5).abs() < 1e-15);
+        let p = r.at(t);
+        for k in 0..3 {
+            let q: f64 = (0..3).map(|i| b[i] * tri[i][k]).sum();
+            assert!((p[k] - q).abs() < 1e-15);
+        }
+        assert!(Ray::new([0.8, 0.8, 1.0], [0.0, 0.0, -1.0])
+            .intersect(&tri, 0.0, 9.0)
+            .is_none());
+        // Behind the origin, and beyond t_max.
+        assert!(r.intersect(&tri, 0.6, 9.0).is_none());
+        assert!(r.intersect(&tri, 0.0, 0.4).is_none());
+    }
+
+    #[test]
+    fn shared_edges_are_watertight_and_degenerate_triangles_never_hit() {
+        // Two triangles sharing the diagonal of the unit square; rays exactly on it, and at
+        // the shared vertices, hit at least one of them.
+        let a = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]];
+        let b = [[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+        // Interior points of the diagonal (its ends are corners of the square, where rounding
+        // of the origin may put the ray just outside).
+        for i in 1..64 {
+            let x = i as f64 / 64.0;
+            for dir in [[0.0, 0.0, -1.0], [0.3, -0.2, -1.0], [-1e-9, 2e-9, -1.0]] {
+                let o = [x - 0.5 * dir[0], x - 0.5 * dir[1], 0.5];
+                let r = Ray::new(o, dir);
+                assert!(
+                    r.intersect(&a, 0.0, 9.0).is_some() || r.intersect(&b, 0.0, 9.0).is_some(),
+                    "{x} {dir:?}"
+                );
+            }
+        }
+        let sliver = [[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, 2.0, 0.0]];
+        let r = Ray::new([1.0, 1.0, 1.0], [0.0, 0.0, -1.0]);
+        assert!(r.intersect(&sliver, 0.0, 9.0).is_none());
+        let point = [[1.0, 1.0, 0.0]; 3];
+        assert!(r.intersect(&point, 0.0, 9.0).is_none());
+        // Grazing: a ray in the triangle's plane does not hit (det = 0) and gives no NaN.
+        let g = Ray::new([-1.0, 0.2, 0.0], [1.0, 0.0, 0.0]);
+        assert!(g.intersect(&a, 0.0, 9.0).is_none());
+    }
+}

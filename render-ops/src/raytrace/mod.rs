@@ -1,0 +1,59 @@
+//! Differentiable ray tracing with edge sampling (the `raytrace` method): primary visibility,
+//! direct lighting with shadow rays from directional, point and area lights, and gradients
+//! that include the discontinuities of visibility (silhouettes, occlusion and shadow
+//! boundaries). T.-M. Li, M. Aittala, F. Durand, J. Lehtinen, "Differentiable Monte Carlo ray
+//! tracing through edge sampling", SIGGRAPH Asia 2018 (redner); survey section 5.1.
+//!
+//! # Forward
+//! Each pixel is the box-filtered (area-averaged) image of docs/CONVENTIONS.md, estimated with
+//! `spp` stratified samples (an `sx x sy` grid of strata, one jittered sample in each). Primary
+//! rays are traced in the clip space of the camera: with `q = (clip.x, clip.y, clip.w)` (a
+//! linear map of view space for a perspective camera) the ray of NDC point `(x, y)` is
+//! `q = t (x, y, 1)` and `t` is the view depth, so hits are those of the rasterizer (same
+//! barycentrics, near and far planes) and gradients reach the camera through the clip
+//! positions. Shading happens in world space ([`shading`]: Lambert, Phong, Blinn-Phong, SH),
+//! with one shadow ray per light and sample (an area light: one uniform area sample per pixel
+//! sample) against a BVH of the world-space triangles ([`bvh`], watertight tests of
+//! [`intersect`]). SH lighting is unshadowed. The emitter of an area light is not visible to the
+//! camera. Random numbers are counter-based ([`rng`]): a render is a function of its inputs and
+//! `seed`, the same for any thread count.
+//!
+//! # Backward
+//! * Interior: every sample's colour is differentiated through the shading (point, normals,
+//!   albedo, light rows) and through its hit barycentrics: for a ray along `d` hitting the
+//!   triangle `q_i` at `b`, with `N = e1 x e2`, `A = (e2 x N) / |N|^2`, `B = (N x e1) / |N|^2`,
+//!   `G = (g_b1 - g_b0) A + (g_b2 - g_b0) B` and `H = G . d / (N . d)`, the gradient of vertex `i`
+//!   is `b_i (H N - G)` (the hit moves along the ray, the barycentrics within the plane).
+//! * Primary edges (Li et al. eq. 5-7): silhouette and boundary edges seen from the camera are
+//!   sampled in proportion to their projected length; at the image point `u(s)` of edge point
+//!   `s` the difference of the image on the two sides, `f(u - eps n) - f(u + eps n)`, times the
+//!   normal velocity `cross(du/ds, du/dtheta)` (in pixel units, so the pixel integral is a
+//!   mean) is the derivative of the pixel containing `u`.
+//! * Shadow edges of point and directional lights: an occluder edge that is a silhouette seen
+//!   from the light is sampled (by world length); the ray from the light through its point `p(s)`
+//!   meets the receiver at `y`, projected to `u`; the same two-sided difference and normal
+//!   velocity of `u`, now a function of the occluder edge, the light, the receiver triangle and
+//!   the camera.
+//! * Shadow edges of area lights (secondary visibility, Li et al. section 5): per pixel sample,
+//!   `area_edge_samples` edges (by world length) that are silhouettes seen from the shading
+//!   point `x`; the ray from `x` through `p(s)` meets the light at `(a, b)`; the difference of
+//!   the light's estimator on the two sides of the curve in `(a, b)` times the curve's normal
+//!   velocity (a function of the edge, the light and `x`, whose motion on its receiver is
+//!   included) is the derivative of the light integral.
+//!
+//! Gradients reach clip positions (primary hits and edges; hence the camera and vertex
+//! positions through the tape), world positions, normals and albedo at the hits, and every
+//! light row. Not differentiated: the eye position used for the view direction of specular
+//! terms (the camera's effect on highlights) and the camera's effect on the world shading
+//! point of secondary edges; edges crossing the near plane have no primary-edge term.
+
+pub mod bvh;
+pub mod edges;
+pub mod intersect;
+pub mod rng;
+pub mod shading;
+
+mod op;
+
+pub use op::{raytrace, RaytraceSettings};
+pub use shading::{LightKind, Reflection};

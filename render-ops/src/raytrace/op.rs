@@ -1,0 +1,919 @@
+//! The `raytrace` tape op: forward render and the backward of [`super`] (interior, primary
+//! edges, shadow edges, area-light edges), parallel over fixed chunks of rows and edge samples
+//! whose per-vertex accumulators are summed in chunk order (bit-identical on any pool).
+
+use std::sync::Arc;
+
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use ndarray::{ArrayD, IxDyn};
+use rayon::prelude::*;
+
+use crate::error::RenderError;
+use crate::shade::{acc3, add3, cross3, dot3, scale3, sub3};
+
+use super::bvh::Bvh;
+use super::edges::{face_normal, is_silhouette, mesh_edges, plane_hit, Cdf, Edge, Viewer};
+use super::intersect::{Ray, V3};
+use super::rng::{Counter, Stream};
+use super::shading::{LightKind, LightSet, Reflection, ShadeGrad, Shadow};
+
+/// Most pixels of one render (as the rasterizer's limit).
+const MAX_PIXELS: usize = 1 << 26;
+/// Side offset of edge evaluations, in pixels (primary and shadow edges) or in the light's
+/// `(a, b)` units (area-light edges).
+const SIDE_EPS_PX: f64 = 1e-3;
+const SIDE_EPS_AB: f64 = 1e-5;
+
+/// Settings of [`raytrace`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct RaytraceSettings {
+    /// Image width in pixels.
+    pub width: usize,
+    /// Image height in pixels.
+    pub height: usize,
+    /// Samples per pixel (stratified), >= 1.
+    pub spp: usize,
+    /// Seed of the counter-based random numbers.
+    pub seed: u64,
+    /// Background colour.
+    pub background: [f64; 3],
+    /// Near plane (view depth); primary hits nearer than it are clipped, as in the rasterizer.
+    pub near: f64,
+    /// Far plane (view depth).
+    pub far: f64,
+    /// The camera position in world space (view directions of specular terms, the shading
+    /// point's motion for area-light edges).
+    pub eye: [f64; 3],
+    /// Reflection model and its constants.
+    pub reflection: Reflection,
+    /// Kinds of the lights, in the order of their rows.
+    pub lights: Vec<LightKind>,
+    /// Shadow rays (default true); off: every light is unshadowed.
+    pub shadows: bool,
+    /// Primary (silhouette) edge samples per backward, 0 for none (default: one per pixel).
+    pub primary_edge_samples: usize,
+    /// Shadow-edge samples of point and directional lights per backward (default: one per
+    /// pixel).
+    pub shadow_edge_samples: usize,
+    /// Area-light edge samples per pixel sample and area light (default 1).
+    pub area_edge_samples: usize,
+}
+
+impl RaytraceSettings {
+    /// Defaults for a `width x height` image: 4 samples per pixel, seed 0, black background,
+    /// near 0.1, far 100, eye at the origin, unlit (`shading: none`), no lights, shadows on,
+    /// one primary and one shadow edge sample per pixel, one area edge sample per sample.
+    pub fn new(width: usize, height: usize) -> Self {
+        RaytraceSettings {
+            width,
+            height,
+            spp: 4,
+            seed: 0,
+            background: [0.0; 3],
+            near: 0.1,
+            far: 100.0,
+            eye: [0.0; 3],
+            reflection: Reflection {
+                shading: crate::scene::Shading::None,
+                ks: [0.2; 3],
+                shininess: 32.0,
+                ka: None,
+            },
+            lights: Vec::new(),
+            shadows: true,
+            primary_edge_samples: width * height,
+            shadow_edge_samples: width * height,
+            area_edge_samples: 1,
+        }
+    }
+
+    fn validate(&self) -> Result<(), RenderError> {
+        let bad = |m: String| Err(RenderError::Unsupported(format!("raytrace: {m}")));
+        if self.width == 0 || self.height == 0 || self.width * self.height > MAX_PIXELS {
+            return bad(format!(
+                "image {} x {} must have 1 to {MAX_PIXELS} pixels",
+                self.width, self.height
+            ));
+        }
+        if self.spp == 0 || self.spp > 1 << 16 {
+            return bad(format!("spp {} must be 1 to 65536", self.spp));
+        }
+        if !(self.near > 0.0 && self.far > self.near && self.far.is_finite()) {
+            return bad(format!(
+                "near {} and far {} must satisfy 0 < near < far < inf",
+                self.near, self.far
+            ));
+        }
+        let r = &self.reflection;
+        let finite = self
+            .background
+            .iter()
+            .chain(&self.eye)
+            .chain(&r.ks)
+            .chain(r.ka.iter().flatten())
+            .all(|x| x.is_finite());
+        if !(finite && r.shininess >= 0.0 && r.shininess.is_finite()) {
+            return bad("background, eye, ks, ka and shininess must be finite".into());
+        }
+        Ok(())
+    }
+
+    /// Strata per row and per column of a pixel: the divisor pair of `spp` nearest a square.
+    fn strata(&self) -> (usize, usize) {
+        let mut sx = (self.spp as f64).sqrt() as usize;
+        while sx > 1 && !self.spp.is_multiple_of(sx) {
+            sx -= 1;
+        }
+        (sx.max(1), self.spp / sx.max(1))
+    }
+}
+
+/// Renders `faces` by ray tracing: `clip` `[V, 4]` clip positions of a perspective camera,
+/// `world` `[V, 3]` world positions, `normals` `[V, 3]` vertex normals (any length), `albedo`
+/// `[V, 3]`, `lights` `[n, 3]` the light rows of `settings.lights` (ambient: colour;
+/// directional: direction, colour; point: position, colour; area: corner, edge_u, edge_v,
+/// radiance; sh: 9 rows). The image is `[H, W, 4]`: RGB over the background, then coverage.
+///
+/// # Errors
+/// Shapes, face indices out of range, non-finite inputs, invalid settings.
+#[allow(clippy::too_many_arguments)]
+pub fn raytrace<'t, T: Real>(
+    clip: Var<'t, T>,
+    world: Var<'t, T>,
+    normals: Var<'t, T>,
+    albedo: Var<'t, T>,
+    lights: Var<'t, T>,
+    faces: Arc<Vec<[u32; 3]>>,
+    settings: &RaytraceSettings,
+) -> Result<Var<'t, T>, RenderError> {
+    settings.validate()?;
+    let v = clip.shape().first().copied().unwrap_or(0);
+    let n_rows: usize = settings.lights.iter().map(|k| k.rows()).sum();
+    let want: [(&'static str, Var<'t, T>, [usize; 2]); 5] = [
+        ("clip", clip, [v, 4]),
+        ("world", world, [v, 3]),
+        ("normals", normals, [v, 3]),
+        ("albedo", albedo, [v, 3]),
+        ("lights", lights, [n_rows, 3]),
+    ];
+    for (name, var, shape) in want {
+        let val = var.value()?;
+        if val.shape() != shape {
+            return Err(AutodiffError::shape(
+                "raytrace",
+                &[val.shape()],
+                format!("{name} must be {shape:?}"),
+            )
+            .into());
+        }
+        RenderError::check_finite(name, &val)?;
+    }
+    if let Some((f, tri)) = faces
+        .iter()
+        .enumerate()
+        .find(|(_, t)| t.iter().any(|&i| i as usize >= v))
+    {
+        return Err(RenderError::Unsupported(format!(
+            "raytrace: face {f} {tri:?} indexes past the {v} vertices"
+        )));
+    }
+    let op = RaytraceOp {
+        faces,
+        s: settings.clone(),
+    };
+    Ok(clip
+        .tape()
+        .apply(op, &[clip, world, normals, albedo, lights]))
+}
+
+struct RaytraceOp {
+    faces: Arc<Vec<[u32; 3]>>,
+    s: RaytraceSettings,
+}
+
+fn rows<T: Real, const N: usize>(t: &Tensor<T>) -> Vec<[f64; N]> {
+    let t = t.as_standard_layout();
+    t.as_slice()
+        .expect("standard")
+        .chunks_exact(N)
+        .map(|c| std::array::from_fn(|k| c[k].to_f64c()))
+        .collect()
+}
+
+/// Everything one evaluation reads, built once per forward or backward.
+struct Scene<'a> {
+    s: &'a RaytraceSettings,
+    faces: &'a [[u32; 3]],
+    q: Vec<V3>,
+    clip: Vec<[f64; 4]>,
+    world: Vec<V3>,
+    normals: Vec<V3>,
+    albedo: Vec<V3>,
+    light_rows: Vec<V3>,
+    primary: Bvh,
+    shadow: Option<Bvh>,
+    /// Scale of the world coordinates (shadow-ray offsets).
+    scale: f64,
+}
+
+/// Per-chunk gradient accumulators (dense per vertex; only the wanted inputs allocated).
+struct Acc {
+    clip: Vec<[f64; 4]>,
+    world: Vec<V3>,
+    normals: Vec<V3>,
+    albedo: Vec<V3>,
+    rows: Vec<V3>,
+}
+
+impl Acc {
+    fn new(v: usize, n_rows: usize, need: &[bool]) -> Self {
+        let n = |i: usize, len: usize| if need[i] { len } else { 0 };
+        Acc {
+            clip: vec![[0.0; 4]; n(0, v)],
+            world: vec![[0.0; 3]; n(1, v)],
+            normals: vec![[0.0; 3]; n(2, v)],
+            albedo: vec![[0.0; 3]; n(3, v)],
+            rows: vec![[0.0; 3]; n(4, n_rows)],
+        }
+    }
+}
+
+fn add_to<const N: usize>(acc: &mut [[f64; N]], i: usize, g: [f64; N]) {
+    if let Some(a) = acc.get_mut(i) {
+        for k in 0..N {
+            a[k] += g[k];
+        }
+    }
+}
+
+/// The hit of a primary sample, in world terms.
+struct Surface {
+    face: u32,
+    bary: V3,
+    x: V3,
+    nraw: V3,
+    albedo: V3,
+    ng: V3,
+    dir: V3,
+}
+
+impl<'a> Scene<'a> {
+    fn new<T: Real>(op: &'a RaytraceOp, inputs: &[&Tensor<T>]) -> Self {
+        let clip: Vec<[f64; 4]> = rows(inputs[0]);
+        let q: Vec<V3> = clip.iter().map(|c| [c[0], c[1], c[3]]).collect();
+        let world: Vec<V3> = rows(inputs[1]);
+        let s = &op.s;
+        let (primary, shadow) = rayon::join(
+            || Bvh::new(&q, &op.faces),
+            || {
+                let lit = s.shadows
+                    && s.lights.iter().any(|k| {
+                        matches!(
+                            k,
+                            LightKind::Directional | LightKind::Point | LightKind::Area
+                        )
+                    });
+                lit.then(|| Bvh::new(&world, &op.faces))
+            },
+        );
+        let scale = world.iter().flatten().fold(1.0f64, |m, x| m.max(x.abs()));
+        Scene {
+            s,
+            faces: &op.faces,
+            q,
+            clip,
+            world,
+            normals: rows(inputs[2]),
+            albedo: rows(inputs[3]),
+            light_rows: rows(inputs[4]),
+            primary,
+            shadow,
+            scale,
+        }
+    }
+
+    fn lights(&self) -> LightSet<'_> {
+        LightSet::new(&self.s.lights, &self.light_rows).expect("rows checked")
+    }
+
+    /// NDC of a point in pixel coordinates (x right, y down).
+    fn ndc(&self, u: [f64; 2]) -> [f64; 2] {
+        [
+            2.0 * u[0] / self.s.width as f64 - 1.0,
+            1.0 - 2.0 * u[1] / self.s.height as f64,
+        ]
+    }
+
+    /// The primary hit through pixel point `u`.
+    fn hit(&self, u: [f64; 2]) -> Option<Surface> {
+        let [x, y] = self.ndc(u);
+        let dir = [x, y, 1.0];
+        let r = Ray::new([0.0; 3], dir);
+        let h = self.primary.closest(&r, self.s.near, self.s.far)?;
+        let tri = self.faces[h.face as usize];
+        let lerp = |a: &[V3]| {
+            let mut o = [0.0; 3];
+            for (i, &vi) in tri.iter().enumerate() {
+                acc3(&mut o, scale3(a[vi as usize], h.bary[i]));
+            }
+            o
+        };
+        Some(Surface {
+            face: h.face,
+            bary: h.bary,
+            x: lerp(&self.world),
+            nraw: lerp(&self.normals),
+            albedo: lerp(&self.albedo),
+            ng: face_normal(&self.world, &tri),
+            dir,
+        })
+    }
+
+    /// Shadow test from `x` (geometric normal `ng`): the origin is pushed off the surface
+    /// towards the light by a small multiple of the scene's scale.
+    fn visible(&self, x: V3, ng: V3, q: Shadow) -> bool {
+        let Some(bvh) = &self.shadow else {
+            return true;
+        };
+        let (dir, t_max) = match q {
+            Shadow::Toward(p) => (sub3(p, x), 1.0 - 1e-9),
+            Shadow::Along(d) => (d, f64::INFINITY),
+        };
+        let len = dot3(ng, ng).sqrt();
+        let side = if dot3(ng, dir) >= 0.0 { 1.0 } else { -1.0 };
+        let off = if len > 0.0 {
+            scale3(ng, side * 1e-9 * self.scale / len)
+        } else {
+            [0.0; 3]
+        };
+        let o = add3(x, off);
+        let dir = match q {
+            Shadow::Toward(p) => sub3(p, o),
+            Shadow::Along(d) => d,
+        };
+        if dot3(dir, dir) == 0.0 {
+            return true;
+        }
+        !bvh.occluded(&Ray::new(o, dir), 0.0, t_max)
+    }
+
+    fn area_samples(&self, ctr: &mut Counter, n: usize) -> Vec<[f64; 2]> {
+        (0..n).map(|_| [ctr.uniform(), ctr.uniform()]).collect()
+    }
+
+    /// The radiance (RGB, coverage) of the primary ray through `u`, with the area lights
+    /// sampled from `ctr`; with `grad`, the gradient of `g . value` of the interior terms
+    /// (and, for `area_edges`, the area-light edge terms of this sample) into `acc`.
+    fn radiance(
+        &self,
+        u: [f64; 2],
+        mut ctr: Counter,
+        grad: Option<([f64; 4], &mut Acc)>,
+        area_edges: Option<(&Edges, u64)>,
+    ) -> [f64; 4] {
+        let bg = self.s.background;
+        let Some(hit) = self.hit(u) else {
+            return [bg[0], bg[1], bg[2], 0.0];
+        };
+        let lights = self.lights();
+        let ab = self.area_samples(&mut ctr, lights.n_area);
+        let mut vis = |q| self.visible(hit.x, hit.ng, q);
+        let Some((g, acc)) = grad else {
+            let c = lights.shade(
+                &self.s.reflection,
+                hit.x,
+                hit.nraw,
+                hit.albedo,
+                self.s.eye,
+                &ab,
+                &mut vis,
+                None,
+            );
+            return [c[0], c[1], c[2], 1.0];
+        };
+        let g3 = [g[0], g[1], g[2]];
+        let mut sg = ShadeGrad::default();
+        let c = lights.shade(
+            &self.s.reflection,
+            hit.x,
+            hit.nraw,
+            hit.albedo,
+            self.s.eye,
+            &ab,
+            &mut vis,
+            Some((g3, &mut sg, &mut acc.rows)),
+        );
+        if let Some((edges, index)) = area_edges {
+            self.area_edge_terms(&hit, g3, edges, index, acc);
+        }
+        self.surface_backward(&hit, &sg, acc);
+        [c[0], c[1], c[2], 1.0]
+    }
+
+    /// Scatters the shading gradient of a hit onto its vertices: interpolation (world,
+    /// normals, albedo) and the hit barycentrics (clip).
+    fn surface_backward(&self, hit: &Surface, sg: &ShadeGrad, acc: &mut Acc) {
+        let tri = self.faces[hit.face as usize];
+        let b = hit.bary;
+        let mut gb = [0.0; 3];
+        for (i, &vi) in tri.iter().enumerate() {
+            let vi = vi as usize;
+            add_to(&mut acc.world, vi, scale3(sg.x, b[i]));
+            add_to(&mut acc.normals, vi, scale3(sg.nraw, b[i]));
+            add_to(&mut acc.albedo, vi, scale3(sg.albedo, b[i]));
+            gb[i] = dot3(sg.x, self.world[vi])
+                + dot3(sg.nraw, self.normals[vi])
+                + dot3(sg.albedo, self.albedo[vi]);
+        }
+        if acc.clip.is_empty() {
+            return;
+        }
+        let q = tri.map(|i| self.q[i as usize]);
+        for (i, g) in bary_vjp(q, hit.dir, b, gb).into_iter().enumerate() {
+            add_to(&mut acc.clip, tri[i] as usize, [g[0], g[1], 0.0, g[2]]);
+        }
+    }
+
+    /// Pixel coordinates of clip point `c` and the rows of `d pixel / d clip`.
+    fn project(&self, c: [f64; 4]) -> ([f64; 2], [[f64; 4]; 2]) {
+        let (w, h) = (self.s.width as f64, self.s.height as f64);
+        let iw = 1.0 / c[3];
+        let u = [(c[0] * iw + 1.0) * 0.5 * w, (1.0 - c[1] * iw) * 0.5 * h];
+        let d = [
+            [0.5 * w * iw, 0.0, 0.0, -0.5 * w * c[0] * iw * iw],
+            [0.0, -0.5 * h * iw, 0.0, 0.5 * h * c[1] * iw * iw],
+        ];
+        (u, d)
+    }
+
+    fn pixel(&self, u: [f64; 2]) -> Option<usize> {
+        let (c, r) = (u[0].floor(), u[1].floor());
+        (c >= 0.0 && r >= 0.0 && (c as usize) < self.s.width && (r as usize) < self.s.height)
+            .then(|| r as usize * self.s.width + c as usize)
+    }
+
+    /// `f(u - eps n) - f(u + eps n)` for the image point `u` of an edge with image tangent
+    /// `a` (`n` = `perp(a) / |a|`), and the pixel of `u`; `None` off the image.
+    fn two_sided(&self, u: [f64; 2], a: [f64; 2], ctr: Counter) -> Option<(usize, [f64; 4])> {
+        let p = self.pixel(u)?;
+        let len = (a[0] * a[0] + a[1] * a[1]).sqrt();
+        if !(len > 0.0 && len.is_finite()) {
+            return None;
+        }
+        let n = [-a[1] / len * SIDE_EPS_PX, a[0] / len * SIDE_EPS_PX];
+        let minus = self.radiance([u[0] - n[0], u[1] - n[1]], ctr, None, None);
+        let plus = self.radiance([u[0] + n[0], u[1] + n[1]], ctr, None, None);
+        Some((p, std::array::from_fn(|k| minus[k] - plus[k])))
+    }
+
+    /// Area-light edge terms of one pixel sample (module docs), into `acc`.
+    fn area_edge_terms(&self, hit: &Surface, g: V3, edges: &Edges, index: u64, acc: &mut Acc) {
+        let m = self.s.area_edge_samples;
+        if m == 0 || edges.all.is_empty() {
+            return;
+        }
+        let lights = self.lights();
+        let mut area_k = 0u64;
+        for (li, kind) in self.s.lights.iter().enumerate() {
+            if *kind != LightKind::Area {
+                continue;
+            }
+            let o = lights.offsets[li];
+            let one = LightSet::new(&[LightKind::Area], &self.light_rows[o..o + 4]).expect("4");
+            let r = &self.light_rows;
+            let quad = [r[o], add3(r[o], r[o + 1]), add3(r[o], r[o + 2])];
+            for j in 0..m {
+                let idx = (index * lights.n_area as u64 + area_k) * m as u64 + j as u64;
+                let mut ctr = Counter::new(self.s.seed, Stream::AreaEdge, idx);
+                let (e, pe) = edges.all.sample(ctr.uniform());
+                let s = ctr.uniform();
+                let edge = edges.list[e as usize];
+                if !is_silhouette(&edge, &self.world, self.faces, Viewer::At(hit.x)) {
+                    continue;
+                }
+                let (pa, pb) = (
+                    self.world[edge.v[0] as usize],
+                    self.world[edge.v[1] as usize],
+                );
+                let dp = sub3(pb, pa);
+                let p = add3(pa, scale3(dp, s));
+                let d = sub3(p, hit.x);
+                let Some(ph) = plane_hit(hit.x, d, quad) else {
+                    continue;
+                };
+                let (t, ab) = (ph.t, [ph.beta[1], ph.beta[2]]);
+                if !(t > 1.0) || !(0.0..=1.0).contains(&ab[0]) || !(0.0..=1.0).contains(&ab[1]) {
+                    continue;
+                }
+                let tan = [t * dot3(ph.j[0], dp), t * dot3(ph.j[1], dp)];
+                let len = (tan[0] * tan[0] + tan[1] * tan[1]).sqrt();
+                if !(len > 0.0 && len.is_finite()) {
+                    continue;
+                }
+                let nrm = [-tan[1] / len * SIDE_EPS_AB, tan[0] / len * SIDE_EPS_AB];
+                let mut vis = |q| self.visible(hit.x, hit.ng, q);
+                let mut side = |sgn: f64| {
+                    let at = [ab[0] + sgn * nrm[0], ab[1] + sgn * nrm[1]];
+                    one.shade(
+                        &self.s.reflection,
+                        hit.x,
+                        hit.nraw,
+                        hit.albedo,
+                        self.s.eye,
+                        &[at],
+                        &mut vis,
+                        None,
+                    )
+                };
+                let delta = sub3(side(-1.0), side(1.0));
+                let scal = dot3(g, delta) / (m as f64 * pe);
+                if scal == 0.0 {
+                    continue;
+                }
+                let z = sub3(scale3(ph.j[1], tan[0]), scale3(ph.j[0], tan[1]));
+                let zs = scale3(z, scal);
+                add_to(&mut acc.rows, o, scale3(zs, -1.0));
+                add_to(&mut acc.rows, o + 1, scale3(zs, -ab[0]));
+                add_to(&mut acc.rows, o + 2, scale3(zs, -ab[1]));
+                add_to(
+                    &mut acc.world,
+                    edge.v[0] as usize,
+                    scale3(zs, t * (1.0 - s)),
+                );
+                add_to(&mut acc.world, edge.v[1] as usize, scale3(zs, t * s));
+                // The shading point moves with its receiver along the camera ray.
+                let gx = scale3(zs, 1.0 - t);
+                let dc = sub3(hit.x, self.s.eye);
+                let nd = dot3(hit.ng, dc);
+                if nd != 0.0 && !acc.world.is_empty() {
+                    let k = dot3(dc, gx) / nd;
+                    let tri = self.faces[hit.face as usize];
+                    for (i, &vi) in tri.iter().enumerate() {
+                        add_to(&mut acc.world, vi as usize, scale3(hit.ng, k * hit.bary[i]));
+                    }
+                }
+            }
+            area_k += 1;
+        }
+    }
+
+    /// One primary-edge sample (module docs).
+    fn primary_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
+        let mut ctr = Counter::new(self.s.seed, Stream::PrimaryEdge, j as u64);
+        let (e, pe) = edges.primary.sample(ctr.uniform());
+        let s = ctr.uniform();
+        let edge = edges.list[e as usize];
+        let (ca, cb) = (self.clip[edge.v[0] as usize], self.clip[edge.v[1] as usize]);
+        let c: [f64; 4] = std::array::from_fn(|k| ca[k] + s * (cb[k] - ca[k]));
+        if c[3] <= self.s.near {
+            return;
+        }
+        let (u, dpi) = self.project(c);
+        let dc: [f64; 4] = std::array::from_fn(|k| cb[k] - ca[k]);
+        let a = [dot4(dpi[0], dc), dot4(dpi[1], dc)];
+        let Some((p, delta)) = self.two_sided(u, a, ctr) else {
+            return;
+        };
+        let scal = dot4(gimg[p], delta) / (self.s.primary_edge_samples as f64 * pe);
+        if scal == 0.0 || acc.clip.is_empty() {
+            return;
+        }
+        let z4: [f64; 4] = std::array::from_fn(|k| scal * (a[0] * dpi[1][k] - a[1] * dpi[0][k]));
+        add_to(&mut acc.clip, edge.v[0] as usize, z4.map(|x| x * (1.0 - s)));
+        add_to(&mut acc.clip, edge.v[1] as usize, z4.map(|x| x * s));
+    }
+
+    /// One shadow-edge sample of a point or directional light (module docs).
+    fn shadow_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
+        let Some(bvh) = &self.shadow else {
+            return;
+        };
+        let mut ctr = Counter::new(self.s.seed, Stream::ShadowEdge, j as u64);
+        let (pick, pe) = edges.shadow.sample(ctr.uniform());
+        let s = ctr.uniform();
+        let (li, e) = edges.shadow_items[pick as usize];
+        let o = self.lights().offsets[li];
+        let point = self.s.lights[li] == LightKind::Point;
+        let edge = edges.list[e as usize];
+        let (pa, pb) = (
+            self.world[edge.v[0] as usize],
+            self.world[edge.v[1] as usize],
+        );
+        let dp = sub3(pb, pa);
+        let p = add3(pa, scale3(dp, s));
+        let lrow = self.light_rows[o];
+        let (origin, dir) = if point {
+            (lrow, sub3(p, lrow))
+        } else {
+            (p, lrow)
+        };
+        if dot3(dir, dir) == 0.0 {
+            return;
+        }
+        // The receiver: the first surface beyond the edge point, away from the light.
+        let Some(h) = bvh.closest(&Ray::new(p, dir), 1e-9, f64::INFINITY) else {
+            return;
+        };
+        if edge.faces.contains(&h.face) {
+            return;
+        }
+        let tri = self.faces[h.face as usize];
+        let r = tri.map(|i| self.world[i as usize]);
+        let Some(ph) = plane_hit(origin, dir, r) else {
+            return;
+        };
+        let beta = ph.beta;
+        let cl = tri.map(|i| self.clip[i as usize]);
+        let cy: [f64; 4] = std::array::from_fn(|k| (0..3).map(|i| beta[i] * cl[i][k]).sum());
+        if cy[3] <= self.s.near {
+            return;
+        }
+        let (u, dpi) = self.project(cy);
+        // d u / d beta_k (k = 1, 2), then d u / d (ray and triangle motion).
+        let e1: [f64; 4] = std::array::from_fn(|k| cl[1][k] - cl[0][k]);
+        let e2: [f64; 4] = std::array::from_fn(|k| cl[2][k] - cl[0][k]);
+        let du_db = [
+            [dot4(dpi[0], e1), dot4(dpi[1], e1)],
+            [dot4(dpi[0], e2), dot4(dpi[1], e2)],
+        ];
+        let jw: [V3; 2] = std::array::from_fn(|row| {
+            add3(
+                scale3(ph.j[0], du_db[0][row]),
+                scale3(ph.j[1], du_db[1][row]),
+            )
+        });
+        let t = ph.t;
+        let coef_p = if point { t } else { 1.0 };
+        let a = [coef_p * dot3(jw[0], dp), coef_p * dot3(jw[1], dp)];
+        let Some((px, delta)) = self.two_sided(u, a, ctr) else {
+            return;
+        };
+        let scal = dot4(gimg[px], delta) / (self.s.shadow_edge_samples as f64 * pe);
+        if scal == 0.0 {
+            return;
+        }
+        let z = scale3(sub3(scale3(jw[1], a[0]), scale3(jw[0], a[1])), scal);
+        let z4: [f64; 4] = std::array::from_fn(|k| scal * (a[0] * dpi[1][k] - a[1] * dpi[0][k]));
+        add_to(&mut acc.rows, o, scale3(z, if point { 1.0 - t } else { t }));
+        add_to(
+            &mut acc.world,
+            edge.v[0] as usize,
+            scale3(z, coef_p * (1.0 - s)),
+        );
+        add_to(&mut acc.world, edge.v[1] as usize, scale3(z, coef_p * s));
+        for i in 0..3 {
+            add_to(&mut acc.world, tri[i] as usize, scale3(z, -beta[i]));
+            add_to(&mut acc.clip, tri[i] as usize, z4.map(|x| x * beta[i]));
+        }
+    }
+}
+
+fn dot4(a: [f64; 4], b: [f64; 4]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
+}
+
+/// Gradient of the vertices `q` of a triangle hit by a ray along `d` at barycentrics `b`,
+/// given the gradient `gb` of the barycentrics (module docs of [`super`]).
+pub(crate) fn bary_vjp(q: [V3; 3], d: V3, b: V3, gb: V3) -> [V3; 3] {
+    let e1 = sub3(q[1], q[0]);
+    let e2 = sub3(q[2], q[0]);
+    let n = cross3(e1, e2);
+    let nn = dot3(n, n);
+    let nd = dot3(n, d);
+    if nn == 0.0 || nd == 0.0 {
+        return [[0.0; 3]; 3];
+    }
+    let a = scale3(cross3(e2, n), 1.0 / nn);
+    let bb = scale3(cross3(n, e1), 1.0 / nn);
+    let g = add3(scale3(a, gb[1] - gb[0]), scale3(bb, gb[2] - gb[0]));
+    let h = dot3(g, d) / nd;
+    let w = sub3(scale3(n, h), g);
+    [scale3(w, b[0]), scale3(w, b[1]), scale3(w, b[2])]
+}
+
+/// The edge tables of one backward.
+struct Edges {
+    list: Vec<Edge>,
+    /// Silhouette and boundary edges seen from the camera, by projected length (pixels).
+    primary: Cdf,
+    /// (light, edge) pairs of point and directional lights, silhouettes seen from the light,
+    /// by world length; `shadow` samples indices into `shadow_items`.
+    shadow: Cdf,
+    shadow_items: Vec<(usize, u32)>,
+    /// Every edge by world length (area-light edges; the silhouette test is per point).
+    all: Cdf,
+}
+
+impl Edges {
+    fn new(sc: &Scene<'_>) -> Self {
+        let list = mesh_edges(&sc.world, sc.faces);
+        let near = sc.s.near;
+        let primary = Cdf::new(list.iter().enumerate().map(|(i, e)| {
+            let (ca, cb) = (sc.clip[e.v[0] as usize], sc.clip[e.v[1] as usize]);
+            if ca[3] <= near
+                || cb[3] <= near
+                || !is_silhouette(e, &sc.q, sc.faces, Viewer::At([0.0; 3]))
+            {
+                return (i as u32, 0.0);
+            }
+            let (ua, ub) = (sc.project(ca).0, sc.project(cb).0);
+            (
+                i as u32,
+                ((ua[0] - ub[0]).powi(2) + (ua[1] - ub[1]).powi(2)).sqrt(),
+            )
+        }));
+        let lights = sc.lights();
+        let mut shadow_items = Vec::new();
+        let mut weights = Vec::new();
+        if sc.shadow.is_some() {
+            for (li, kind) in sc.s.lights.iter().enumerate() {
+                let o = lights.offsets[li];
+                let viewer = match kind {
+                    LightKind::Point => Viewer::At(sc.light_rows[o]),
+                    LightKind::Directional => Viewer::Along(sc.light_rows[o]),
+                    _ => continue,
+                };
+                for (i, e) in list.iter().enumerate() {
+                    if is_silhouette(e, &sc.world, sc.faces, viewer) {
+                        let d = sub3(sc.world[e.v[1] as usize], sc.world[e.v[0] as usize]);
+                        weights.push((shadow_items.len() as u32, dot3(d, d).sqrt()));
+                        shadow_items.push((li, i as u32));
+                    }
+                }
+            }
+        }
+        let shadow = Cdf::new(weights.into_iter());
+        let all = if lights.n_area > 0 && sc.shadow.is_some() {
+            Cdf::new(list.iter().enumerate().map(|(i, e)| {
+                let d = sub3(sc.world[e.v[1] as usize], sc.world[e.v[0] as usize]);
+                (i as u32, dot3(d, d).sqrt())
+            }))
+        } else {
+            Cdf::default()
+        };
+        Edges {
+            list,
+            primary,
+            shadow,
+            shadow_items,
+            all,
+        }
+    }
+}
+
+/// Fixed chunks of work (rows, edge samples): as many as the accumulators' memory allows, at
+/// most 32; the count depends on the sizes only.
+fn chunk_count(height: usize, v: usize, n_rows: usize) -> usize {
+    let per = 13 * v + 3 * n_rows + 1;
+    ((1usize << 23) / per).clamp(1, 32).min(height.max(1))
+}
+
+impl<T: Real> Op<T> for RaytraceOp {
+    fn name(&self) -> &'static str {
+        "raytrace"
+    }
+
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+        let sc = Scene::new(self, inputs);
+        let (w, h, spp) = (self.s.width, self.s.height, self.s.spp);
+        let (sx, sy) = self.s.strata();
+        let mut img = vec![T::zero(); h * w * 4];
+        img.par_chunks_mut(w * 4).enumerate().for_each(|(r, row)| {
+            for c in 0..w {
+                let pix = r * w + c;
+                let mut sum = [0.0; 4];
+                for k in 0..spp {
+                    let mut ctr = Counter::new(self.s.seed, Stream::Pixel, (pix * spp + k) as u64);
+                    let u = [
+                        c as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
+                        r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
+                    ];
+                    let v = sc.radiance(u, ctr, None, None);
+                    for ch in 0..4 {
+                        sum[ch] += v[ch];
+                    }
+                }
+                for ch in 0..4 {
+                    row[c * 4 + ch] = T::from_f64c(sum[ch] / spp as f64);
+                }
+            }
+        });
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[h, w, 4]), img).expect("h x w x 4")
+        ])
+    }
+
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        let need = ctx.needs_grad;
+        if !need.iter().any(|&b| b) {
+            return Ok(vec![None; 5]);
+        }
+        let sc = Scene::new(self, ctx.inputs);
+        let gimg: Vec<[f64; 4]> = rows(ctx.grad_outputs[0]);
+        let edges = Edges::new(&sc);
+        let (w, h, spp) = (self.s.width, self.s.height, self.s.spp);
+        let (sx, sy) = self.s.strata();
+        let v = sc.q.len();
+        let n_rows = sc.light_rows.len();
+        let chunks = chunk_count(h, v, n_rows);
+        let rows_per = h.div_ceil(chunks);
+        let block = |n: usize, c: usize| {
+            let per = n.div_ceil(chunks);
+            (c * per).min(n)..((c + 1) * per).min(n)
+        };
+        let area_edges = !edges.all.is_empty();
+        let accs: Vec<Acc> = (0..chunks)
+            .into_par_iter()
+            .map(|c| {
+                let mut acc = Acc::new(v, n_rows, need);
+                for r in (c * rows_per).min(h)..((c + 1) * rows_per).min(h) {
+                    for col in 0..w {
+                        let pix = r * w + col;
+                        let g = gimg[pix].map(|x| x / spp as f64);
+                        if g.iter().all(|&x| x == 0.0) {
+                            continue;
+                        }
+                        for k in 0..spp {
+                            let index = (pix * spp + k) as u64;
+                            let mut ctr = Counter::new(self.s.seed, Stream::Pixel, index);
+                            let u = [
+                                col as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
+                                r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
+                            ];
+                            let ae = area_edges.then_some((&edges, index));
+                            sc.radiance(u, ctr, Some((g, &mut acc)), ae);
+                        }
+                    }
+                }
+                if !edges.primary.is_empty() {
+                    for j in block(self.s.primary_edge_samples, c) {
+                        sc.primary_edge(j, &edges, &gimg, &mut acc);
+                    }
+                }
+                if !edges.shadow.is_empty() {
+                    for j in block(self.s.shadow_edge_samples, c) {
+                        sc.shadow_edge(j, &edges, &gimg, &mut acc);
+                    }
+                }
+                acc
+            })
+            .collect();
+        fn reduce<T: Real, const N: usize>(
+            accs: &[Acc],
+            get: impl Fn(&Acc) -> &Vec<[f64; N]> + Sync,
+            shape: [usize; 2],
+        ) -> Tensor<T> {
+            let len = get(&accs[0]).len();
+            let out: Vec<T> = (0..len)
+                .into_par_iter()
+                .flat_map_iter(|i| {
+                    let mut s = [0.0; N];
+                    for a in accs {
+                        for k in 0..N {
+                            s[k] += get(a)[i][k];
+                        }
+                    }
+                    s.into_iter().map(T::from_f64c)
+                })
+                .collect();
+            ArrayD::from_shape_vec(IxDyn(&shape), out).expect("shape")
+        }
+        Ok(vec![
+            need[0].then(|| reduce::<T, 4>(&accs, |a| &a.clip, [v, 4])),
+            need[1].then(|| reduce::<T, 3>(&accs, |a| &a.world, [v, 3])),
+            need[2].then(|| reduce::<T, 3>(&accs, |a| &a.normals, [v, 3])),
+            need[3].then(|| reduce::<T, 3>(&accs, |a| &a.albedo, [v, 3])),
+            need[4].then(|| reduce::<T, 3>(&accs, |a| &a.rows, [n_rows, 3])),
+        ])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raytrace::intersect::Ray;
+
+    #[test]
+    fn bary_vjp_matches_finite_differences() {
+        let q = [[0.1, -0.2, 2.0], [1.2, 0.1, 2.3], [-0.1, 0.9, 2.2]];
+        let d = [0.15, 0.2, 1.0];
+        let gb = [0.3, -1.2, 0.7];
+        let f = |q: [V3; 3]| {
+            let (_, b) = Ray::new([0.0; 3], d).intersect(&q, 0.0, 10.0).unwrap();
+            dot3(b, gb)
+        };
+        let (_, b) = Ray::new([0.0; 3], d).intersect(&q, 0.0, 10.0).unwrap();
+        let g = bary_vjp(q, d, b, gb);
+        let h = 1e-6;
+        for i in 0..3 {
+            for k in 0..3 {
+                let mut a = q;
+                a[i][k] += h;
+                let mut c = q;
+                c[i][k] -= h;
+                let num = (f(a) - f(c)) / (2.0 * h);
+                assert!((num - g[i][k]).abs() < 1e-7, "{i} {k}: {num} {}", g[i][k]);
+            }
+        }
+    }
+}
