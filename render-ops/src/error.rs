@@ -46,6 +46,10 @@ pub enum RenderError {
     /// cannot carry it); the message says what is supported.
     #[error("unsupported: {0}")]
     Unsupported(String),
+    /// An input that does not fit the scene (a target of another size, an input the scene
+    /// lacks), with its message.
+    #[error("{0}")]
+    InvalidInput(String),
 }
 
 impl RenderError {

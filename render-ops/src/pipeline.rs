@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{Real, Tape, Var};
+use autodiff::{Real, Tape, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
 
 use crate::error::RenderError;
@@ -36,6 +36,30 @@ pub struct SceneVars<'t, T: Real> {
     pub lights: Option<Var<'t, T>>,
 }
 
+impl<'t, T: Real> SceneVars<'t, T> {
+    /// The variable of `input`. `InvalidInput` (named after `--wrt`, with the scene's
+    /// `source`) when the scene has no texture, no lights, or the input is empty.
+    pub fn input(&self, input: SceneInput, source: &str) -> Result<Var<'t, T>, RenderError> {
+        let missing = |what: &str| {
+            RenderError::InvalidInput(format!(
+                "--wrt {}: the scene {source} has no {what}",
+                input.name()
+            ))
+        };
+        let v = match input {
+            SceneInput::Positions => self.positions,
+            SceneInput::Colors => self.colors,
+            SceneInput::Camera => self.camera,
+            SceneInput::Texture => self.texture.ok_or_else(|| missing("texture"))?,
+            SceneInput::Lights => self.lights.ok_or_else(|| missing("lights"))?,
+        };
+        if v.is_empty() {
+            return Err(missing(input.name()));
+        }
+        Ok(v)
+    }
+}
+
 /// Which scene inputs should carry gradients.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Wrt {
@@ -49,6 +73,69 @@ pub struct Wrt {
     pub camera: bool,
     /// The light parameters (`[n, 3]`, [`SceneVars::lights`]).
     pub lights: bool,
+}
+
+/// A differentiable scene input.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum SceneInput {
+    /// Vertex positions `[V, 3]`.
+    Positions,
+    /// Vertex colours `[V, 3]`.
+    Colors,
+    /// Texture texels `[H, W, C]`.
+    Texture,
+    /// Camera eye and look-at point `[2, 3]`.
+    Camera,
+    /// Light parameters `[n, 3]` ([`crate::pipeline::SceneVars::lights`]).
+    Lights,
+}
+
+impl SceneInput {
+    /// Every input.
+    pub const ALL: [SceneInput; 5] = [
+        SceneInput::Positions,
+        SceneInput::Colors,
+        SceneInput::Texture,
+        SceneInput::Camera,
+        SceneInput::Lights,
+    ];
+
+    /// The command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            SceneInput::Positions => "positions",
+            SceneInput::Colors => "colors",
+            SceneInput::Texture => "texture",
+            SceneInput::Camera => "camera",
+            SceneInput::Lights => "lights",
+        }
+    }
+
+    /// Parses a command-line name.
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|i| i.name() == name)
+    }
+
+    /// Positions and camera move edges: the image is not smooth in them.
+    pub fn is_geometric(self) -> bool {
+        matches!(self, SceneInput::Positions | SceneInput::Camera)
+    }
+
+    /// One item per mesh vertex.
+    pub fn is_per_vertex(self) -> bool {
+        matches!(self, SceneInput::Positions | SceneInput::Colors)
+    }
+
+    /// The [`Wrt`] flags that make this input require a gradient.
+    pub fn wrt(self) -> Wrt {
+        Wrt {
+            positions: self == SceneInput::Positions,
+            colors: self == SceneInput::Colors,
+            texture: self == SceneInput::Texture,
+            camera: self == SceneInput::Camera,
+            lights: self == SceneInput::Lights,
+        }
+    }
 }
 
 impl<T: Real> Scene<T> {
@@ -190,6 +277,55 @@ impl<T: Real> Scene<T> {
             return render_vertex_colors(clip, self.vertex_colors(vars, kd)?, faces, &s);
         }
         self.render_shaded(vars, clip, kd, &s)
+    }
+}
+
+/// The scene commands as library calls (`tapestry render --npy`, `tapestry grad`), so that the
+/// command line and the Python bindings compute the same numbers.
+impl<T: Real> Scene<T> {
+    /// The RGBA image `[H, W, 4]` of [`Scene::render`] without gradients (what
+    /// `tapestry render --npy` writes, with `T = f64`).
+    ///
+    /// # Errors
+    /// The render's errors.
+    pub fn render_image(&self) -> Result<Tensor<T>, RenderError> {
+        let tape = Tape::new();
+        let vars = self.vars(&tape, Wrt::default());
+        let img = self.render(&vars)?.value()?;
+        Ok(Arc::unwrap_or_clone(img))
+    }
+
+    /// `L = sum over pixels and channels of (render - target)^2` and `dL/d input` in the
+    /// input's shape (`tapestry grad`). A 3-channel `target` `[H, W, 3]` is compared with the
+    /// RGB channels, a 4-channel one with RGBA. `target_name` names the target in errors.
+    ///
+    /// # Errors
+    /// `InvalidInput` for a target of another size, a texture or lights asked of a scene
+    /// without them; the render's errors.
+    pub fn image_loss_grad(
+        &self,
+        target: Tensor<T>,
+        target_name: &str,
+        input: SceneInput,
+    ) -> Result<(T, Tensor<T>), RenderError> {
+        let (w, h) = (
+            self.desc.image.width as usize,
+            self.desc.image.height as usize,
+        );
+        let ts = target.shape().to_vec();
+        if ts.len() != 3 || ts[0] != h || ts[1] != w || !(ts[2] == 3 || ts[2] == 4) {
+            return Err(RenderError::InvalidInput(format!(
+                "target {target_name}: shape {ts:?} does not match the scene's image [{h}, {w}, 3 or 4]"
+            )));
+        }
+        let tape = Tape::new();
+        let vars = self.vars(&tape, input.wrt());
+        let x = vars.input(input, &self.source)?;
+        let img = self.render(&vars)?;
+        let img = if ts[2] == 3 { img.slice(2, 0, 3) } else { img };
+        let loss = img.sum_squared_diff(tape.constant(target));
+        let grads = tape.backward(loss)?;
+        Ok((loss.item()?, grads.wrt(x)))
     }
 }
 

@@ -74,8 +74,22 @@ fn err(e: impl std::fmt::Display) -> CliError {
 /// (`--face` must then be 0) is an override; without it `photo` (`[H, W, 3]`, the input's
 /// pixels) goes to the face detector ([`models::detect`]: BlazeFace + the 468-point MediaPipe
 /// face mesh) and `--face` picks one of its faces, largest first.
-pub fn target_landmarks(args: &Args, photo: &Array3<f64>) -> Result<Landmarks2D, CliError> {
+pub fn target_landmarks(
+    args: &Args,
+    photo: &Array3<f64>,
+    given: Option<Landmarks2D>,
+) -> Result<Landmarks2D, CliError> {
     let (h, w, _) = photo.dim();
+    if let Some(lms) = given {
+        if args.face != 0 {
+            return Err(CliError::Message(format!(
+                "--face {}: out of range: {} hold one face (use --face 0)",
+                args.face,
+                lms.source.display()
+            )));
+        }
+        return Ok(lms);
+    }
     match &args.landmarks {
         Some(path) => {
             if args.face != 0 {
@@ -125,15 +139,18 @@ struct Photo {
 /// Reads a photo as linear RGB `[H, W, 3]` (gray replicated, alpha dropped) and resizes it
 /// (area filter) so that its longer side is at most `size`, keeping its aspect.
 fn load_photo(path: &Path, size: usize) -> Result<Photo, CliError> {
-    let img = read_image::<f64>(path)?;
+    photo_from(read_image::<f64>(path)?, &path.display().to_string(), size)
+}
+
+/// [`load_photo`] of an image in memory (`name` in errors): `[H, W, C]`, `C` of 1 to 4.
+fn photo_from(img: Array3<f64>, name: &str, size: usize) -> Result<Photo, CliError> {
     let (h, w, c) = img.dim();
     let input = Array3::from_shape_fn((h, w, 3), |(r, col, k)| {
         img[[r, col, if c >= 3 { k } else { 0 }]]
     });
     let too_small = || {
         CliError::Message(format!(
-            "{}: image {w}x{h} is too small (at least 16 pixels each way)",
-            path.display()
+            "{name}: image {w}x{h} is too small (at least 16 pixels each way)"
         ))
     };
     if w < 16 || h < 16 {
@@ -277,13 +294,29 @@ fn load_model(args: &Args) -> Result<Morphable<f64>, CliError> {
     Ok(model)
 }
 
-fn prepare(args: &Args, model: &Morphable<f64>, t0: Instant) -> Result<Prepared, CliError> {
-    match (&args.target, &args.landmarks) {
-        (Some(img), _) => {
-            let photo = load_photo(img, args.size)?;
+fn prepare(
+    args: &Args,
+    model: &Morphable<f64>,
+    given: Option<GivenTarget>,
+    t0: Instant,
+) -> Result<Prepared, CliError> {
+    let given = match (given, &args.target) {
+        (Some(g), _) => {
+            let photo = photo_from(g.photo, "the target image", args.size)?;
+            let lms = g.landmarks.map(|points| Landmarks2D {
+                points,
+                source: PathBuf::from("the given landmarks"),
+            });
+            Some((photo, lms))
+        }
+        (None, Some(img)) => Some((load_photo(img, args.size)?, None)),
+        (None, None) => None,
+    };
+    match (given, &args.landmarks) {
+        (Some((photo, given_lms)), _) => {
             let load_seconds = t0.elapsed().as_secs_f64();
             let t1 = Instant::now();
-            let lms = target_landmarks(args, &photo.input)?;
+            let lms = target_landmarks(args, &photo.input, given_lms)?;
             let corr: Correspondence =
                 fit::correspondence(model, lms.points.nrows(), &lms.source).map_err(err)?;
             let detected = corr.select(&lms.points);
@@ -354,8 +387,46 @@ struct Outputs {
     texts: Vec<(&'static str, String)>,
 }
 
-/// Runs `fit-face`.
+/// A target given in memory instead of `--target` / `--landmarks` (the Python bindings).
+#[derive(Clone, Debug)]
+pub struct GivenTarget {
+    /// The photo `[H, W, C]` (linear values in `[0, 1]`; `C` of 1 to 4: gray replicated,
+    /// alpha dropped).
+    pub photo: Array3<f64>,
+    /// Its landmarks `[N, 2]` in the photo's pixels (as a landmark file holds them); `None`:
+    /// detected.
+    pub landmarks: Option<Array2<f64>>,
+}
+
+/// A finished fit, made in memory: what `fit-face` writes, and what the Python bindings return.
+pub struct FaceFit {
+    /// The fitted parameters.
+    pub params: FaceParams,
+    /// `params.json`.
+    pub params_json: serde_json::Value,
+    /// `report.json` (`total_seconds`: up to the end of the fit and its outputs).
+    pub report: serde_json::Value,
+    /// The fitted shape `[V, 3]` in model space (millimetres), as in `fit.obj`.
+    pub vertices: Array2<f64>,
+    /// The model's triangles.
+    pub faces: Vec<[u32; 3]>,
+    /// The fitted per-vertex albedo `[V, 3]`.
+    pub albedo: Array2<f64>,
+    /// The fit's render `[H, W, 4]` (RGBA) at the fit's size.
+    pub image: Array3<f64>,
+    outs: Outputs,
+    start: Instant,
+}
+
+/// Runs `fit-face`: [`fit_face`], then writes its files and prints its summary.
 pub fn run(args: &Args) -> Result<ExitCode, CliError> {
+    let fit = fit_face(args, None)?;
+    write_fit(args, fit)
+}
+
+/// The fit of `fit-face` without writing anything: the target is `given`, else `--target`
+/// (with `--landmarks`), else synthetic.
+pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliError> {
     let start = Instant::now();
     let method = parse_method(&args.method)?;
     if args.size < 16 {
@@ -368,7 +439,7 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
         return Err(CliError::Message("--iters must be at least 1".into()));
     }
     let model = load_model(args)?;
-    let prep = prepare(args, &model, start)?;
+    let prep = prepare(args, &model, given, start)?;
     let target = &prep.target;
     let (h, w, _) = target.image.dim();
     let (hi, wi, _) = prep.input.dim();
@@ -425,6 +496,7 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
             .map_err(err)?
             .0
     };
+    let pjson = params_json(&model, &result.params, method, [w, h], [wi, hi]);
     let mut outs = Outputs {
         pngs: vec![
             ("fit.png", img.slice(s![.., .., 0..3]).to_owned()),
@@ -443,18 +515,11 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
             ),
             (
                 "params.json",
-                serde_json::to_string_pretty(&params_json(
-                    &model,
-                    &result.params,
-                    method,
-                    [w, h],
-                    [wi, hi],
-                ))
-                .expect("json"),
+                serde_json::to_string_pretty(&pjson).expect("json"),
             ),
         ],
     };
-    mesh_outputs(&model, &result.params, &mut outs)?;
+    let (vertices, albedo) = mesh_outputs(&model, &result.params, &mut outs)?;
     let outputs_seconds = out_start.elapsed().as_secs_f64();
 
     let n1f = opts.landmark_iters.max(1) as f64;
@@ -493,9 +558,10 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
         "input_width": wi,
         "input_height": hi,
         "landmarks": target.points.len(),
-        "target": match &args.target {
-            Some(p) => p.display().to_string(),
-            None => "synthetic".to_string(),
+        "target": match (&args.target, prep.truth.is_some()) {
+            (Some(p), _) => p.display().to_string(),
+            (None, true) => "synthetic".to_string(),
+            (None, false) => "array".to_string(),
         },
         "final_loss": result.history.last().map(|r| r.loss),
     });
@@ -512,6 +578,41 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
         report["image_scale"] = json!(prep.scale);
     }
 
+    report["total_seconds"] = json!(start.elapsed().as_secs_f64());
+    Ok(FaceFit {
+        params_json: pjson,
+        params: result.params,
+        report,
+        vertices,
+        faces: model.faces().to_vec(),
+        albedo,
+        image: img,
+        outs,
+        start,
+    })
+}
+
+/// Writes the files of a finished fit and prints its summary.
+fn write_fit(args: &Args, fit: FaceFit) -> Result<ExitCode, CliError> {
+    let FaceFit {
+        mut report,
+        outs,
+        start,
+        ..
+    } = fit;
+    let f = |k: &str| report[k].as_f64().unwrap_or(f64::NAN);
+    let (lm_err, lm_err0, rmse, fit_seconds) = (
+        f("landmark_error_px"),
+        f("initial_landmark_error_px"),
+        f("photometric_rmse"),
+        f("seconds"),
+    );
+    let spi = &report["seconds_per_iteration"];
+    let (spi1, spi2) = (
+        spi["landmarks"].as_f64().unwrap_or(f64::NAN),
+        spi["full"].as_f64().unwrap_or(f64::NAN),
+    );
+    let method = report["method"].as_str().unwrap_or_default().to_string();
     // Every input was good and the fit ran: only now the folder and the files.
     std::fs::create_dir_all(&args.out).map_err(|e| {
         CliError::Message(format!("{}: cannot create folder: {e}", args.out.display()))
@@ -530,7 +631,7 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
         &serde_json::to_string_pretty(&report).expect("json"),
     )?;
 
-    println!("method: {}", method.name());
+    println!("method: {method}");
     println!("landmark error: {lm_err:.3} px (initial {lm_err0:.2} px)");
     println!("photometric RMSE: {rmse:.4}");
     if let Some(s) = report.get("shape_error_mm").and_then(|v| v.as_f64()) {
@@ -542,8 +643,8 @@ pub fn run(args: &Args) -> Result<ExitCode, CliError> {
     println!(
         "time: {fit_seconds:.2} s fit ({} iterations: {:.1} ms/iter landmarks, {:.1} ms/iter all terms), {total:.2} s in all",
         args.iters,
-        1e3 * result.stage_seconds[0] / n1f,
-        1e3 * result.stage_seconds[1] / n2f
+        1e3 * spi1,
+        1e3 * spi2
     );
     println!("wrote {}", args.out.display());
     Ok(ExitCode::SUCCESS)
@@ -572,7 +673,7 @@ fn mesh_outputs(
     model: &Morphable<f64>,
     p: &FaceParams,
     outs: &mut Outputs,
-) -> Result<(), CliError> {
+) -> Result<(Array2<f64>, Array2<f64>), CliError> {
     let shape = p.shape(model).map_err(err)?;
     let gamma: Vec<f64> = p
         .z_albedo
@@ -632,7 +733,7 @@ fn mesh_outputs(
     }
     outs.texts.push(("fit.obj", obj));
     outs.texts.push(("fit.mtl", mtl));
-    Ok(())
+    Ok((shape, albedo))
 }
 
 /// Per-vertex `albedo` `[V, 3]` baked into a `size x size` texture: every triangle drawn in

@@ -5,14 +5,17 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use autodiff::suite::render_table;
-use render_ops::check::scene::{check_scene, write_outputs, SceneCheckOptions, SceneInput};
+use autodiff::suite::CaseResult;
+use render_ops::check::scene::{
+    check_scene, write_outputs, SceneCheck, SceneCheckOptions, SceneInput,
+};
 use render_ops::io::read_image;
 use render_ops::scene::{Method, Scene};
 
-use super::{CliError, WrtArg};
+use super::CliError;
 
 /// Worst items listed in the reports.
-const WORST: usize = 10;
+pub const WORST: usize = 10;
 
 /// Runs the registered cases (filtered by `op`), prints them, and fails when any case fails.
 pub fn run(op: Option<&str>, json: bool) -> Result<ExitCode, CliError> {
@@ -24,21 +27,7 @@ pub fn run(op: Option<&str>, json: bool) -> Result<ExitCode, CliError> {
         )));
     }
     if json {
-        let recs: Vec<serde_json::Value> = results
-            .iter()
-            .map(|r| {
-                serde_json::json!({
-                    "op": r.op,
-                    "category": r.category,
-                    "shapes": r.shapes,
-                    "max_abs_err": r.max_abs_err,
-                    "max_rel_err": r.max_rel_err,
-                    "f32_rel": r.f32_rel,
-                    "passed": r.passed,
-                    "error": r.error,
-                })
-            })
-            .collect();
+        let recs: Vec<serde_json::Value> = results.iter().map(case_json).collect();
         println!(
             "{}",
             serde_json::to_string_pretty(&recs).map_err(|e| CliError::Message(e.to_string()))?
@@ -53,13 +42,27 @@ pub fn run(op: Option<&str>, json: bool) -> Result<ExitCode, CliError> {
     })
 }
 
+/// One registered case's result as the JSON record of `gradcheck --json`.
+pub fn case_json(r: &CaseResult) -> serde_json::Value {
+    serde_json::json!({
+        "op": r.op,
+        "category": r.category,
+        "shapes": r.shapes,
+        "max_abs_err": r.max_abs_err,
+        "max_rel_err": r.max_rel_err,
+        "f32_rel": r.f32_rel,
+        "passed": r.passed,
+        "error": r.error,
+    })
+}
+
 /// Arguments of the scene check.
 #[derive(Clone, Debug)]
 pub struct SceneArgs {
     /// Scene JSON.
     pub scene: PathBuf,
     /// The input checked.
-    pub wrt: WrtArg,
+    pub wrt: SceneInput,
     /// Target image.
     pub target: Option<PathBuf>,
     /// Method override.
@@ -78,37 +81,7 @@ pub struct SceneArgs {
 
 /// Checks a scene's gradient, prints the report, writes the outputs; exit code 1 on failure.
 pub fn run_scene(a: &SceneArgs) -> Result<ExitCode, CliError> {
-    let mut scene = Scene::<f64>::load(&a.scene)?;
-    if let Some(m) = &a.method {
-        let method = Method::from_name(m).ok_or_else(|| {
-            CliError::Message(format!(
-                "--method '{m}': expected one of hard, tf_mesh, opendr, nmr, softras, dibr, deodr"
-            ))
-        })?;
-        scene.desc.raster.method = method;
-    }
-    let target = match &a.target {
-        Some(p) => Some(read_image::<f64>(p)?.into_dyn()),
-        None => None,
-    };
-    let input = match a.wrt {
-        WrtArg::Positions => SceneInput::Positions,
-        WrtArg::Colors => SceneInput::Colors,
-        WrtArg::Texture => SceneInput::Texture,
-        WrtArg::Camera => SceneInput::Camera,
-        WrtArg::Lights => SceneInput::Lights,
-    };
-    if a.backward_scale.is_some_and(|f| !f.is_finite()) {
-        return Err(CliError::Message(
-            "--self-test-backward-scale must be finite".into(),
-        ));
-    }
-    let mut opts = SceneCheckOptions::new(input);
-    opts.samples = a.samples;
-    opts.items = a.vertices;
-    opts.heatmap = a.out.is_some();
-    opts.backward_scale = a.backward_scale;
-    let check = check_scene(&scene, target.as_ref(), &opts)?;
+    let check = check_scene_args(a)?;
     if a.json {
         println!(
             "{}",
@@ -128,4 +101,33 @@ pub fn run_scene(a: &SceneArgs) -> Result<ExitCode, CliError> {
     } else {
         ExitCode::FAILURE
     })
+}
+
+/// The scene check of `a` (nothing printed or written).
+pub fn check_scene_args(a: &SceneArgs) -> Result<SceneCheck, CliError> {
+    let mut scene = Scene::<f64>::load(&a.scene)?;
+    if let Some(m) = &a.method {
+        let method = Method::from_name(m).ok_or_else(|| {
+            CliError::Message(format!(
+                "--method '{m}': expected one of hard, tf_mesh, opendr, nmr, softras, dibr, deodr"
+            ))
+        })?;
+        scene.desc.raster.method = method;
+    }
+    let target = match &a.target {
+        Some(p) => Some(read_image::<f64>(p)?.into_dyn()),
+        None => None,
+    };
+    let input = a.wrt;
+    if a.backward_scale.is_some_and(|f| !f.is_finite()) {
+        return Err(CliError::Message(
+            "--self-test-backward-scale must be finite".into(),
+        ));
+    }
+    let mut opts = SceneCheckOptions::new(input);
+    opts.samples = a.samples;
+    opts.items = a.vertices;
+    opts.heatmap = a.out.is_some();
+    opts.backward_scale = a.backward_scale;
+    Ok(check_scene(&scene, target.as_ref(), &opts)?)
 }

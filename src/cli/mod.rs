@@ -2,9 +2,9 @@
 //! Every command returns a typed error that `main` prints as one line on stderr.
 
 mod bench;
-mod fit_face;
+pub mod fit_face;
 mod grad;
-mod gradcheck;
+pub mod gradcheck;
 mod landmarks;
 mod render;
 
@@ -37,6 +37,19 @@ pub enum WrtArg {
     /// Light parameters, written as [n, 3]: every light in scene order (ambient: colour;
     /// directional: direction, colour; point: position, colour; sh: 9 rows).
     Lights,
+}
+
+impl From<WrtArg> for render_ops::pipeline::SceneInput {
+    fn from(w: WrtArg) -> Self {
+        use render_ops::pipeline::SceneInput as I;
+        match w {
+            WrtArg::Positions => I::Positions,
+            WrtArg::Colors => I::Colors,
+            WrtArg::Texture => I::Texture,
+            WrtArg::Camera => I::Camera,
+            WrtArg::Lights => I::Lights,
+        }
+    }
 }
 
 /// The commands.
@@ -247,7 +260,9 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
             ..
         } => gradcheck::run_scene(&gradcheck::SceneArgs {
             scene,
-            wrt: wrt.ok_or_else(|| CliError::Message("gradcheck: a scene needs --wrt".into()))?,
+            wrt: wrt
+                .ok_or_else(|| CliError::Message("gradcheck: a scene needs --wrt".into()))?
+                .into(),
             target,
             method,
             samples,

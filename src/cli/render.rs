@@ -3,20 +3,17 @@
 use std::path::Path;
 use std::process::ExitCode;
 
-use autodiff::Tape;
 use ndarray::{s, Ix3};
 use render_ops::io::{write_npy, write_png};
-use render_ops::pipeline::Wrt;
 use render_ops::scene::Scene;
 
 use super::CliError;
 
-/// Renders `scene` (f64 precision, no gradients) and writes the PNG and optional .npy.
+/// Renders `scene` (f64 precision, no gradients: [`Scene::render_image`]) and writes the PNG
+/// and optional .npy.
 pub fn run(scene: &Path, out: &Path, npy: Option<&Path>) -> Result<ExitCode, CliError> {
     let scene = Scene::<f64>::load(scene)?;
-    let tape = Tape::new();
-    let vars = scene.vars(&tape, Wrt::default());
-    let img = scene.render(&vars)?.value()?;
+    let img = scene.render_image()?;
     let img = img
         .view()
         .into_dimensionality::<Ix3>()

@@ -44,71 +44,10 @@ use super::{
     item_values, pipeline, scale_backward, select_items, sq_loss, CheckOptions, CheckReport, Items,
 };
 use crate::error::RenderError;
+pub use crate::pipeline::SceneInput;
 use crate::pipeline::Wrt;
 use crate::raster::{rasterize_fragments, RasterSettings};
 use crate::scene::{Method, Raster, Scene};
-
-/// A differentiable scene input.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum SceneInput {
-    /// Vertex positions `[V, 3]`.
-    Positions,
-    /// Vertex colours `[V, 3]`.
-    Colors,
-    /// Texture texels `[H, W, C]`.
-    Texture,
-    /// Camera eye and look-at point `[2, 3]`.
-    Camera,
-    /// Light parameters `[n, 3]` ([`crate::pipeline::SceneVars::lights`]).
-    Lights,
-}
-
-impl SceneInput {
-    /// Every input.
-    pub const ALL: [SceneInput; 5] = [
-        SceneInput::Positions,
-        SceneInput::Colors,
-        SceneInput::Texture,
-        SceneInput::Camera,
-        SceneInput::Lights,
-    ];
-
-    /// The command-line name.
-    pub fn name(self) -> &'static str {
-        match self {
-            SceneInput::Positions => "positions",
-            SceneInput::Colors => "colors",
-            SceneInput::Texture => "texture",
-            SceneInput::Camera => "camera",
-            SceneInput::Lights => "lights",
-        }
-    }
-
-    /// Parses a command-line name.
-    pub fn from_name(name: &str) -> Option<Self> {
-        Self::ALL.into_iter().find(|i| i.name() == name)
-    }
-
-    /// Positions and camera move edges: the image is not smooth in them.
-    pub fn is_geometric(self) -> bool {
-        matches!(self, SceneInput::Positions | SceneInput::Camera)
-    }
-
-    /// One item per mesh vertex.
-    pub fn is_per_vertex(self) -> bool {
-        matches!(self, SceneInput::Positions | SceneInput::Colors)
-    }
-
-    fn wrt(self) -> Wrt {
-        Wrt {
-            positions: self == SceneInput::Positions,
-            colors: self == SceneInput::Colors,
-            texture: self == SceneInput::Texture,
-            camera: self == SceneInput::Camera,
-            lights: self == SceneInput::Lights,
-        }
-    }
-}
 
 /// Where a vertex sits in the image (see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -617,25 +556,7 @@ fn finite_or_null(x: f64) -> Option<f64> {
 pub fn input_value(scene: &Scene<f64>, input: SceneInput) -> Result<Tensor<f64>, RenderError> {
     let tape = Tape::new();
     let vars = scene.vars(&tape, input.wrt());
-    let v = match input {
-        SceneInput::Positions => vars.positions,
-        SceneInput::Colors => vars.colors,
-        SceneInput::Camera => vars.camera,
-        SceneInput::Texture => vars.texture.ok_or_else(|| {
-            RenderError::Unsupported(format!(
-                "--wrt texture: the scene {} has no texture",
-                scene.source
-            ))
-        })?,
-        SceneInput::Lights => vars.lights.expect("asked for"),
-    };
-    if v.is_empty() {
-        return Err(RenderError::Unsupported(format!(
-            "--wrt {}: the scene {} has none",
-            input.name(),
-            scene.source
-        )));
-    }
+    let v = vars.input(input, &scene.source)?;
     let out = (*v.value()?).clone();
     Ok(out)
 }

@@ -1,0 +1,154 @@
+//! numpy arrays in and out: dtype and shape checks with clear messages, the one copy of each
+//! float input into an owned tensor, faces as `u32` triangles, and outputs moved into numpy.
+
+use autodiff::{Real, Tensor};
+use ndarray::{ArrayD, IxDyn};
+use numpy::{
+    Element, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray, PyUntypedArrayMethods,
+};
+use pyo3::exceptions::{PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use render_ops::RenderError;
+
+/// The float dtype of one call (every float input of a call has it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Dt {
+    F32,
+    F64,
+}
+
+/// Runs `$body` with `$T` the scalar type of `$dt`.
+macro_rules! with_dtype {
+    ($dt:expr, $T:ident => $body:expr) => {
+        match $dt {
+            $crate::array::Dt::F32 => {
+                type $T = f32;
+                $body
+            }
+            $crate::array::Dt::F64 => {
+                type $T = f64;
+                $body
+            }
+        }
+    };
+}
+pub(crate) use with_dtype;
+
+fn untyped<'a, 'py>(
+    name: &str,
+    obj: &'a Bound<'py, PyAny>,
+) -> PyResult<&'a Bound<'py, PyUntypedArray>> {
+    obj.cast::<PyUntypedArray>().map_err(|_| {
+        let ty = obj
+            .get_type()
+            .name()
+            .map(|n| n.to_string())
+            .unwrap_or_else(|_| "?".into());
+        PyTypeError::new_err(format!("{name}: expected a numpy array, got {ty}"))
+    })
+}
+
+/// The float dtype of `obj` (`float32` or `float64`), else a `TypeError`.
+pub fn dtype_of(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Dt> {
+    let a = untyped(name, obj)?;
+    let py = obj.py();
+    let dt = a.dtype();
+    if dt.is_equiv_to(&numpy::dtype::<f64>(py)) {
+        Ok(Dt::F64)
+    } else if dt.is_equiv_to(&numpy::dtype::<f32>(py)) {
+        Ok(Dt::F32)
+    } else {
+        Err(PyTypeError::new_err(format!(
+            "{name}: dtype {dt}, expected float32 or float64"
+        )))
+    }
+}
+
+/// Checks `shape` against `want` (`None`: any size), naming the pattern `pattern` in the error.
+pub fn check_shape(
+    name: &str,
+    shape: &[usize],
+    want: &[Option<usize>],
+    pattern: &str,
+) -> PyResult<()> {
+    let ok = shape.len() == want.len()
+        && shape
+            .iter()
+            .zip(want)
+            .all(|(&s, w)| w.is_none_or(|w| w == s));
+    if ok {
+        Ok(())
+    } else {
+        Err(PyValueError::new_err(format!(
+            "{name}: shape {shape:?}, expected {pattern}"
+        )))
+    }
+}
+
+/// A finite float input of dtype `T` and shape `want` as an owned tensor: one copy (a plain memcpy
+/// for C-contiguous arrays, an element walk in logical order for any other strides).
+pub fn floats<T: Element + Real>(
+    name: &'static str,
+    obj: &Bound<'_, PyAny>,
+    want: &[Option<usize>],
+    pattern: &str,
+) -> PyResult<Tensor<T>> {
+    let a = untyped(name, obj)?;
+    let py = obj.py();
+    if !a.dtype().is_equiv_to(&numpy::dtype::<T>(py)) {
+        return Err(PyTypeError::new_err(format!(
+            "{name}: dtype {}, expected {} (the float inputs of one call share a dtype)",
+            a.dtype(),
+            numpy::dtype::<T>(py)
+        )));
+    }
+    check_shape(name, a.shape(), want, pattern)?;
+    let arr = obj.cast::<PyArrayDyn<T>>()?.readonly();
+    let v = arr.as_array();
+    let data: Vec<T> = match v.as_slice() {
+        Some(s) => s.to_vec(),
+        None => v.iter().copied().collect(),
+    };
+    let t = ArrayD::from_shape_vec(IxDyn(v.shape()), data).expect("shape of the view");
+    // NaN or Inf would otherwise reach an image silently: named like the library does.
+    RenderError::check_finite(name, &t).map_err(crate::to_py)?;
+    Ok(t)
+}
+
+/// Triangles `[F, 3]` of any integer dtype as `u32` vertex indices (one copy).
+pub fn faces(obj: &Bound<'_, PyAny>) -> PyResult<Vec<[u32; 3]>> {
+    let a = untyped("faces", obj)?;
+    check_shape("faces", a.shape(), &[None, Some(3)], "[F, 3]")?;
+    let kind = a.dtype().kind();
+    if kind != b'i' && kind != b'u' {
+        return Err(PyTypeError::new_err(format!(
+            "faces: dtype {}, expected an integer dtype",
+            a.dtype()
+        )));
+    }
+    // Any integer dtype through int64 (numpy's own cast), then range-checked.
+    let np = obj.py().import("numpy")?;
+    let i64s = np.call_method1("asarray", (obj, "int64"))?;
+    let arr = i64s.cast::<PyArrayDyn<i64>>()?.readonly();
+    let v = arr.as_array();
+    let flat: Vec<i64> = v.iter().copied().collect();
+    flat.chunks_exact(3)
+        .enumerate()
+        .map(|(i, f)| {
+            let mut t = [0u32; 3];
+            for (k, &x) in f.iter().enumerate() {
+                t[k] = u32::try_from(x).map_err(|_| {
+                    PyValueError::new_err(format!(
+                        "faces[{i}, {k}] = {x}: vertex indices must be in [0, 2^32)"
+                    ))
+                })?;
+            }
+            Ok(t)
+        })
+        .collect()
+}
+
+/// An owned tensor moved into a numpy array (no copy).
+pub fn to_numpy<'py, T: Element>(py: Python<'py>, t: Tensor<T>) -> Bound<'py, PyAny> {
+    numpy::PyArray::from_owned_array(py, t).into_any()
+}
