@@ -600,3 +600,86 @@ fn constant_lights_need_no_gradient() {
     let gp: Vec<f64> = grads.get(p).unwrap().iter().copied().collect();
     assert_eq!(gp, g.unwrap().0);
 }
+
+/// Gradients of the op's own image with respect to albedo and light rows (smooth at fixed
+/// samples when nothing changes visibility: no shadows, lights moved a little) against f64
+/// central differences of the same render (same seed).
+#[test]
+fn appearance_gradients_match_finite_differences_of_the_own_image() {
+    let mut su = shadow_setup(
+        8,
+        2,
+        vec![
+            LightKind::Ambient,
+            LightKind::Directional,
+            LightKind::Point,
+            LightKind::Area,
+        ],
+        vec![
+            [0.1; 3],
+            [0.3, -1.0, -0.2],
+            [0.5, 0.4, 0.3],
+            [-1.2, 3.0, 0.2],
+            [1.0, 1.0, 1.0],
+            [-1.5, 3.0, -0.2],
+            [0.5, 0.0, 0.0],
+            [0.0, 0.0, 0.5],
+            [4.0, 4.0, 4.0],
+        ],
+    );
+    su.s.shadows = false;
+    su.s.reflection.shading = Shading::BlinnPhong;
+    su.s.reflection.ks = [0.3; 3];
+    su.s.reflection.shininess = 8.0;
+    let w = weights(8 * 8 * 4);
+    let eval = |alb: &[[f64; 3]], rows: &[[f64; 3]], grad: bool| {
+        let tape = Tape::<f64>::new();
+        let p = tape.constant(tensor::<f64>(&su.pos));
+        let a = tape.var(tensor::<f64>(alb), grad);
+        let l = tape.var(tensor::<f64>(rows), grad);
+        let faces = Arc::new(su.faces.clone());
+        let clip = to_clip(p, &su.camera.view_proj());
+        let img = raytrace(clip, p, vertex_normals(p, &faces), a, l, faces, &su.s).unwrap();
+        let wt = tape.constant(ArrayD::from_shape_vec(IxDyn(&[8, 8, 4]), w.clone()).unwrap());
+        let loss = (img * wt).sum();
+        let v = loss.value().unwrap().iter().sum::<f64>();
+        let g = grad.then(|| {
+            let g = tape.backward(loss).unwrap();
+            let f = |x| g.get(x).unwrap().iter().copied().collect::<Vec<f64>>();
+            (f(a), f(l))
+        });
+        (v, g)
+    };
+    let (_, g) = eval(&su.colors, &su.rows, true);
+    let (ga, gl) = g.unwrap();
+    let h = 1e-6;
+    let mut checked = 0;
+    for (which, base) in [(0, su.colors.clone()), (1, su.rows.clone())] {
+        for i in 0..base.len() {
+            for k in 0..3 {
+                let mut p = base.clone();
+                p[i][k] += h;
+                let mut m = base.clone();
+                m[i][k] -= h;
+                let (fp, fm) = if which == 0 {
+                    (eval(&p, &su.rows, false).0, eval(&m, &su.rows, false).0)
+                } else {
+                    (eval(&su.colors, &p, false).0, eval(&su.colors, &m, false).0)
+                };
+                let num = (fp - fm) / (2.0 * h);
+                let ana = if which == 0 {
+                    ga[3 * i + k]
+                } else {
+                    gl[3 * i + k]
+                };
+                assert!(
+                    (num - ana).abs() <= 1e-5 * (1.0 + num.abs()),
+                    "{} [{i}][{k}]: analytic {ana} numeric {num}",
+                    ["albedo", "light rows"][which]
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 40);
+}
