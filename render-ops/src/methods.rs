@@ -1,4 +1,4 @@
-//! The method registry: what each of the seven visibility methods is (its [`MethodInfo`]:
+//! The method registry: what each of the eight visibility methods is (its [`MethodInfo`]:
 //! name, [`Kind`], which gradients are exact, whether it composes with per-fragment shading),
 //! the settings every method shares ([`ViewSettings`]) and those of one method
 //! ([`MethodSettings`], from which each op's own settings struct is built), and the two entry
@@ -23,10 +23,12 @@ use std::sync::Arc;
 
 use autodiff::{Real, Var};
 
+use crate::analytic::analytic_fragments;
 use crate::approx::{self, ApproxSettings};
-use crate::blend::blend_hard;
+use crate::blend::{blend_hard, blend_weighted};
 use crate::boundary::{self, BoundarySettings};
 use crate::error::RenderError;
+use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
 use crate::rasterize::{rasterize, render_attributes, Rasterized};
 use crate::scene::{Method, Raster};
@@ -44,6 +46,8 @@ pub enum Kind {
     Boundary,
     /// Probabilistic coverage of every face within a cut-off distance.
     Soft,
+    /// The exact visible area of every face in each pixel (box filter).
+    Area,
 }
 
 /// Which gradients of a method are those of its own forward (exact), and which approximate
@@ -127,6 +131,12 @@ impl Method {
                 e(true, true, true),
                 true,
                 "de La Gorce et al., TPAMI 2011 (DEODR)",
+            ),
+            Method::Analytic => (
+                Kind::Area,
+                e(true, true, true),
+                true,
+                "Catmull, SIGGRAPH 1978 (analytic area sampling), differentiated",
             ),
         };
         MethodInfo {
@@ -339,7 +349,9 @@ impl MethodSettings {
 /// coverage or soft alpha). The fused fast path of each method: `hard` draws in one pass when
 /// nothing needs a gradient ([`render_attributes`]); `tf_mesh`, `opendr`, `nmr`, `deodr` are
 /// the ops of [`crate::approx`]; `softras` is [`soft::softras`]; `dibr` the hard render with
-/// DIB-R's alpha ([`soft::dibr::composite`]).
+/// DIB-R's alpha ([`soft::dibr::composite`]); `analytic` is its stage
+/// ([`analytic_fragments`]), the colours interpolated at each fragment's centroid and
+/// [`blend_weighted`] (exact for screen-space interpolation, `perspective_correct = false`).
 ///
 /// # Errors
 /// The ops' errors (shapes, settings, background length).
@@ -359,6 +371,11 @@ pub fn render_vertex_colors<'t, T: Real>(
         Method::Nmr => approx::nmr(clip, colors, faces, &s.approx()),
         Method::Deodr => approx::deodr(clip, colors, faces, &s.approx()),
         Method::SoftRas => soft::softras(clip, colors, faces, &s.softras()),
+        Method::Analytic => {
+            let a = analytic_fragments(clip, faces, &s.raster())?;
+            let col = interpolate(colors, &a.raster)?;
+            blend_weighted(col, a.weight, &a.raster.fragments, &s.view.background_of(c))
+        }
         Method::Dibr => {
             let hard = render_attributes(
                 clip,
@@ -392,6 +409,8 @@ pub type FragmentShader<'a, 't, T> =
 ///   shader on those fragments, and SoftRas's softmax over depth
 ///   ([`soft::softras_aggregate`]) or DIB-R's nearest covering fragment over the soft
 ///   silhouette ([`soft::dibr_aggregate`]).
+/// * `analytic`: [`analytic_fragments`] (every visible face part of each pixel, its area and
+///   its values at the area centroid), the shader on those fragments, [`blend_weighted`].
 ///
 /// # Errors
 /// The ops' and the shader's errors; `Unsupported` for a method whose
@@ -433,6 +452,14 @@ pub fn render_fragments<'t, T: Real>(
         Method::Deodr => {
             let (image, r) = hard(shader)?;
             boundary::deodr(image, &r, clip, &s.boundary())
+        }
+        Method::Analytic => {
+            let a = analytic_fragments(clip, faces, &s.raster())?;
+            let col = shader(&a.raster)?;
+            let bg = s
+                .view
+                .background_of(col.shape().get(1).copied().unwrap_or(0));
+            blend_weighted(col, a.weight, &a.raster.fragments, &bg)
         }
         Method::SoftRas | Method::Dibr => {
             let frags = soft::soft_fragments(clip, faces, &s.soft_stage())?;

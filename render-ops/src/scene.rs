@@ -395,11 +395,14 @@ pub enum Method {
     /// DEODR: discontinuity edge overdraw (de La Gorce et al.).
     #[serde(rename = "deodr")]
     Deodr,
+    /// Exact area sampling: the visible area of every face in each pixel (Catmull 1978).
+    #[serde(rename = "analytic")]
+    Analytic,
 }
 
 impl Method {
     /// Every method, in the order of docs/CONVENTIONS.md.
-    pub const ALL: [Method; 7] = [
+    pub const ALL: [Method; 8] = [
         Method::Hard,
         Method::TfMesh,
         Method::OpenDr,
@@ -407,6 +410,7 @@ impl Method {
         Method::SoftRas,
         Method::Dibr,
         Method::Deodr,
+        Method::Analytic,
     ];
 
     /// The JSON name.
@@ -419,6 +423,7 @@ impl Method {
             Method::SoftRas => "softras",
             Method::Dibr => "dibr",
             Method::Deodr => "deodr",
+            Method::Analytic => "analytic",
         }
     }
 
@@ -925,7 +930,7 @@ mod tests {
     #[test]
     fn json_errors_name_the_key() {
         let e = parse_err(&with("raster", r#""method": "soft""#));
-        assert!(e.starts_with("s.json: raster.method: unknown variant `soft`, expected one of `hard`, `tf_mesh`, `opendr`, `nmr`, `softras`, `dibr`, `deodr`"), "{e}");
+        assert!(e.starts_with("s.json: raster.method: unknown variant `soft`, expected one of `hard`, `tf_mesh`, `opendr`, `nmr`, `softras`, `dibr`, `deodr`, `analytic`"), "{e}");
         assert!(e.contains(" at line "), "{e}");
         let e = parse_err(&with("raster", r#""sigmaa": 1"#));
         assert!(

@@ -82,7 +82,7 @@ pub fn run_scene(a: &SceneArgs) -> Result<ExitCode, CliError> {
     if let Some(m) = &a.method {
         let method = Method::from_name(m).ok_or_else(|| {
             CliError::Message(format!(
-                "--method '{m}': expected one of hard, tf_mesh, opendr, nmr, softras, dibr, deodr"
+                "--method '{m}': expected one of hard, tf_mesh, opendr, nmr, softras, dibr, deodr, analytic"
             ))
         })?;
         scene.desc.raster.method = method;

@@ -93,7 +93,7 @@ pub enum Command {
         #[arg(long, requires = "scene")]
         target: Option<PathBuf>,
         /// Raster method instead of the scene's (hard, tf_mesh, opendr, nmr, softras, dibr,
-        /// deodr).
+        /// deodr, analytic).
         #[arg(long, requires = "scene")]
         method: Option<String>,
         /// Reference samples per pixel along each axis (S x S supersampled hard render).

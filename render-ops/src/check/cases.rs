@@ -11,6 +11,10 @@
 //! - `method/softras/composed`, `method/dibr/composed`: the soft stage
 //!   ([`crate::soft::soft_fragments`]), per-fragment interpolation and the method's blend op
 //!   ([`crate::soft::aggregate`]), positions and colours against central differences.
+//! - `method/analytic`: the exact area-sampled image (`analytic_fragments`, interpolation at
+//!   the centroids, `blend_weighted`), positions and colours against central differences of
+//!   its own image; `method/analytic/scene`: the same through the scene pipeline on the
+//!   icosphere (perspective-correct), which must pass its own check.
 //! - `method/tf_mesh/colors`, `method/opendr/colors`, `method/nmr/colors`: their colour
 //!   gradient is the hard image's, exact.
 //! - `method/tf_mesh/reference`, `method/opendr/reference`, `method/nmr/reference`: their
@@ -30,8 +34,9 @@ use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, T
 use ndarray::{ArrayD, IxDyn};
 
 use super::scene::{check_scene, SceneCheckOptions, SceneInput};
+use crate::analytic::analytic_fragments;
 use crate::approx::{deodr, nmr, opendr, tf_mesh, ApproxSettings};
-use crate::blend::blend_hard;
+use crate::blend::{blend_hard, blend_weighted};
 use crate::camera::Camera;
 use crate::error::RenderError;
 use crate::interpolate::interpolate;
@@ -143,6 +148,11 @@ fn method_image<'t, T: Real>(
         Method::TfMesh => tf_mesh(clip, colors, faces(), &approx),
         Method::OpenDr => opendr(clip, colors, faces(), &approx),
         Method::Nmr => nmr(clip, colors, faces(), &approx),
+        Method::Analytic => {
+            let a = analytic_fragments(clip, faces(), &RasterSettings::new(SIZE, SIZE))?;
+            let c = interpolate(colors, &a.raster)?;
+            blend_weighted(c, a.weight, &a.raster.fragments, &[T::zero(); 3])
+        }
     }
 }
 
@@ -210,6 +220,7 @@ method_fn!(deodr_case, Method::Deodr);
 method_fn!(tf_mesh_case, Method::TfMesh);
 method_fn!(opendr_case, Method::OpenDr);
 method_fn!(nmr_case, Method::Nmr);
+method_fn!(analytic_case, Method::Analytic);
 
 /// The raster cases (`raster/...`) and the method cases on the octahedron (`method/...`).
 pub fn cases() -> Vec<Case> {
@@ -252,6 +263,11 @@ pub fn cases() -> Vec<Case> {
         pos_colors("method/deodr", deodr_case::<f32>, deodr_case::<f64>),
         pos_colors("method/softras", softras_case::<f32>, softras_case::<f64>),
         pos_colors("method/dibr", dibr_case::<f32>, dibr_case::<f64>),
+        pos_colors(
+            "method/analytic",
+            analytic_case::<f32>,
+            analytic_case::<f64>,
+        ),
         pos_colors(
             "method/softras/composed",
             soft_softras_case::<f32>,
@@ -357,6 +373,9 @@ pub fn register(registry: &mut Registry) {
     registry.add_check("method/nmr/reference", "method", || {
         reference_check("method/nmr/reference", Method::Nmr)
     });
+    registry.add_check("method/analytic/scene", "method", || {
+        reference_check("method/analytic/scene", Method::Analytic)
+    });
 }
 
 #[cfg(test)]
@@ -368,7 +387,7 @@ mod tests {
         let mut reg = Registry::new();
         register(&mut reg);
         let results = reg.run(None);
-        assert_eq!(results.len(), 14);
+        assert_eq!(results.len(), 16);
         for r in &results {
             assert!(r.passed, "{r:?}");
         }
