@@ -1134,4 +1134,82 @@ mod tests {
         .unwrap();
         assert!(r.passed(), "{r:?}");
     }
+
+    /// Coverage in [0, 1] (to rounding), finite values and gradients: ico80k at 64 x 64 (about
+    /// 20 faces per pixel, front and back), and random triangle soups with slivers, shared
+    /// vertices, vertices behind the eye and across the near and far planes.
+    #[test]
+    fn many_faces_per_pixel_and_random_soups_stay_finite_with_coverage_in_0_1() {
+        let check = |clip: Vec<[f64; 4]>, faces: Vec<[u32; 3]>, size: usize| {
+            let t = Tape::<f32>::new();
+            let n = clip.len();
+            let x = t.leaf(
+                ArrayD::from_shape_vec(
+                    IxDyn(&[n, 4]),
+                    clip.iter().flatten().map(|&v| v as f32).collect(),
+                )
+                .unwrap(),
+            );
+            let col = t.leaf(ArrayD::from_elem(IxDyn(&[n, 3]), 0.5f32));
+            let a =
+                analytic_fragments(x, Arc::new(faces), &RasterSettings::new(size, size)).unwrap();
+            let ci = interpolate(col, &a.raster).unwrap();
+            let img = blend_weighted(ci, a.weight, &a.raster.fragments, &[0.0; 3]).unwrap();
+            let v = img.value().unwrap();
+            assert!(v.iter().all(|x| x.is_finite()));
+            for cov in v.iter().skip(3).step_by(4) {
+                assert!((-1e-5..=1.0 + 1e-5).contains(cov), "coverage {cov}");
+            }
+            let g = t.backward(img.sum()).unwrap();
+            assert!(g.get(x).unwrap().iter().all(|x| x.is_finite()));
+        };
+        let cam = Camera::perspective_look_at(
+            [0.0, 0.0, -3.0],
+            [0.0; 3],
+            [0.0, -1.0, 0.0],
+            0.85,
+            1.0,
+            1.0,
+            100.0,
+        )
+        .unwrap()
+        .view_proj();
+        let m = Mesh::<f64>::icosphere(6, 1.0);
+        let clip = m
+            .positions
+            .iter()
+            .map(|p| {
+                std::array::from_fn(|r| (0..3).map(|k| cam[r][k] * p[k]).sum::<f64>() + cam[r][3])
+            })
+            .collect();
+        check(clip, m.faces, 64);
+        let mut rng = autodiff::rng::Rng::new(7);
+        for _ in 0..200 {
+            let nt = 1 + (rng.next_u64() % 12) as usize;
+            let mut clip = Vec::new();
+            let mut faces = Vec::new();
+            for _ in 0..nt {
+                let b = clip.len() as u32;
+                for _ in 0..3 {
+                    let kind = rng.next_u64() % 8;
+                    let r: [f64; 4] = std::array::from_fn(|_| rng.next_f64() * 2.0 - 1.0);
+                    let w = match kind {
+                        0 => -0.3 * r[3].abs(),
+                        1 => 1e-3,
+                        _ => 0.5 + r[3].abs(),
+                    };
+                    clip.push([1.3 * r[0] * w, 1.3 * r[1] * w, 1.4 * r[2] * w, w]);
+                }
+                faces.push([b, b + 1, b + 2]);
+                // A sliver sharing an edge, and a face sharing a vertex with the previous.
+                if rng.next_u64().is_multiple_of(3) {
+                    let (p, q) = (clip[b as usize], clip[b as usize + 1]);
+                    let mid: [f64; 4] = std::array::from_fn(|k| 0.5 * (p[k] + q[k]) + 1e-9);
+                    clip.push(mid);
+                    faces.push([b, b + 1, (clip.len() - 1) as u32]);
+                }
+            }
+            check(clip, faces, 8);
+        }
+    }
 }
