@@ -7,7 +7,8 @@
 //! (back-face culling, no barycentric derivatives). `scripts/bench-raster-peers.sh` runs this
 //! bench and DEODR's forward side by side.
 //! Groups `deodr_f32` and `nmr_f32` time those methods of `render_ops::approx`, forward and
-//! forward + backward, on the 5k and 80k spheres at 256 and 512 pixels.
+//! forward + backward, on the 5k and 80k spheres at 256 and 512 pixels; group `analytic_f32`
+//! the `analytic` method (through `render_vertex_colors`) on the same.
 //!
 //! ```text
 //! cargo bench -p tapestry-render-ops --bench raster -- --warm-up-time 1 --measurement-time 3
@@ -205,12 +206,32 @@ fn bench_nmr(c: &mut Criterion) {
     bench_approx(c, "nmr_f32", render_ops::approx::nmr::<f32>);
 }
 
+/// The `analytic` method (exact area sampling) through the registry's vertex-colour path, on
+/// DEODR's settings and scenes, beside `deodr_f32` (the issue's target: within 3x).
+fn analytic_vertex_colors<'t>(
+    clip: autodiff::Var<'t, f32>,
+    col: autodiff::Var<'t, f32>,
+    faces: Arc<Vec<[u32; 3]>>,
+    s: &render_ops::approx::ApproxSettings,
+) -> Result<autodiff::Var<'t, f32>, render_ops::error::RenderError> {
+    let mut ms = render_ops::MethodSettings::new(render_ops::Method::Analytic, s.width, s.height);
+    ms.view.cull_backfaces = s.cull_backfaces;
+    ms.view.perspective_correct = s.perspective_correct;
+    ms.view.background = s.background.clone();
+    render_ops::render_vertex_colors(clip, col, faces, &ms)
+}
+
+fn bench_analytic(c: &mut Criterion) {
+    bench_approx(c, "analytic_f32", analytic_vertex_colors);
+}
+
 criterion_group!(
     benches,
     bench_forward,
     bench_backward,
     bench_pipeline,
     bench_deodr,
-    bench_nmr
+    bench_nmr,
+    bench_analytic
 );
 criterion_main!(benches);

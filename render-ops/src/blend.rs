@@ -163,3 +163,125 @@ pub fn blend_hard<'t, T: Real>(
     };
     Ok(colors.tape().apply(op, &[colors]))
 }
+
+/// The area-weighted blend of [`crate::analytic`]: per pixel
+/// `sum_i w_i c_i + (1 - sum_i w_i) background`, and the coverage `sum_i w_i` as the last
+/// channel (the box-filtered image when `w_i` are the fragments' visible areas).
+struct WeightedBlendOp<T: Real> {
+    fragments: Arc<Fragments<T>>,
+    background: Vec<T>,
+}
+
+impl<T: Real> WeightedBlendOp<T> {
+    fn check(&self, col: &Tensor<T>, weight: &Tensor<T>) -> AdResult<()> {
+        let (n, c) = (self.fragments.len(), self.background.len());
+        if col.shape() != [n, c] || weight.shape() != [n] {
+            return Err(AutodiffError::shape(
+                "blend_weighted",
+                &[col.shape(), weight.shape()],
+                format!("fragment colours must be [{n}, {c}] and weights [{n}]"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl<T: Real> Op<T> for WeightedBlendOp<T> {
+    fn name(&self) -> &'static str {
+        "blend_weighted"
+    }
+    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+        self.check(inputs[0], inputs[1])?;
+        let col = inputs[0].as_standard_layout();
+        let wt = inputs[1].as_standard_layout();
+        let (cs, ws) = (col.as_slice().expect("std"), wt.as_slice().expect("std"));
+        let f = &self.fragments;
+        let (h, w, c) = (f.height, f.width, self.background.len());
+        let bg: Vec<f64> = self.background.iter().map(|x| x.to_f64c()).collect();
+        let mut img = vec![T::zero(); h * w * (c + 1)];
+        img.par_chunks_mut(w * (c + 1))
+            .enumerate()
+            .for_each(|(row, out)| {
+                let mut acc = vec![0.0f64; c];
+                for (x, px) in out.chunks_exact_mut(c + 1).enumerate() {
+                    let p = row * w + x;
+                    acc.iter_mut().for_each(|a| *a = 0.0);
+                    let mut cov = 0.0f64;
+                    for i in f.offsets[p] as usize..f.offsets[p + 1] as usize {
+                        let wi = ws[i].to_f64c();
+                        cov += wi;
+                        for ch in 0..c {
+                            acc[ch] += wi * cs[i * c + ch].to_f64c();
+                        }
+                    }
+                    for ch in 0..c {
+                        px[ch] = T::from_f64c(acc[ch] + (1.0 - cov) * bg[ch]);
+                    }
+                    px[c] = T::from_f64c(cov);
+                }
+            });
+        Ok(vec![
+            ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c")
+        ])
+    }
+    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        let f = &self.fragments;
+        let (n, c) = (f.len(), self.background.len());
+        let col = ctx.inputs[0].as_standard_layout();
+        let wt = ctx.inputs[1].as_standard_layout();
+        let (cs, ws) = (col.as_slice().expect("std"), wt.as_slice().expect("std"));
+        let g = ctx.grad_outputs[0].as_standard_layout();
+        let gs = g.as_slice().expect("std");
+        let bg: Vec<f64> = self.background.iter().map(|x| x.to_f64c()).collect();
+        let pixel_of = |i: usize| f.pixel_of(i);
+        let gcol = ctx.needs_grad[0].then(|| {
+            let mut gc = vec![T::zero(); n * c];
+            gc.par_chunks_mut(c.max(1)).enumerate().for_each(|(i, o)| {
+                if c == 0 {
+                    return;
+                }
+                let p = pixel_of(i);
+                for ch in 0..c {
+                    o[ch] = T::from_f64c(ws[i].to_f64c() * gs[p * (c + 1) + ch].to_f64c());
+                }
+            });
+            ArrayD::from_shape_vec(IxDyn(&[n, c]), gc).expect("n c")
+        });
+        let gw = ctx.needs_grad[1].then(|| {
+            let mut gw = vec![T::zero(); n];
+            gw.par_iter_mut().enumerate().for_each(|(i, o)| {
+                let p = pixel_of(i);
+                let gp = &gs[p * (c + 1)..(p + 1) * (c + 1)];
+                let mut s = gp[c].to_f64c();
+                for ch in 0..c {
+                    s += (cs[i * c + ch].to_f64c() - bg[ch]) * gp[ch].to_f64c();
+                }
+                *o = T::from_f64c(s);
+            });
+            ArrayD::from_shape_vec(IxDyn(&[n]), gw).expect("n")
+        });
+        Ok(vec![gcol, gw])
+    }
+}
+
+/// Area-weighted compositing of fragment colours `[N, C]` with weights `[N]` (each pixel's
+/// summing to at most 1: the visible areas of [`crate::analytic::analytic_fragments`]) over
+/// `background` (`C` values): an image `[H, W, C + 1]`, per pixel
+/// `sum_i w_i c_i + (1 - sum_i w_i) background`, last channel `sum_i w_i`.
+///
+/// # Errors
+/// Shapes (colours not `[N, C]`, weights not `[N]`).
+pub fn blend_weighted<'t, T: Real>(
+    colors: Var<'t, T>,
+    weights: Var<'t, T>,
+    fragments: &Arc<Fragments<T>>,
+    background: &[T],
+) -> Result<Var<'t, T>, RenderError> {
+    let op = WeightedBlendOp {
+        fragments: fragments.clone(),
+        background: background.to_vec(),
+    };
+    let (cv, wv) = (colors.value()?, weights.value()?);
+    op.check(&cv, &wv)?;
+    Ok(colors.tape().apply(op, &[colors, weights]))
+}

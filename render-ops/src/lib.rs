@@ -7,11 +7,11 @@
 //! |---|---|
 //! | inputs | [`camera`], [`mesh`], [`obj`], [`io`] (PNG, `.npy`), [`scene`] (the scene JSON) |
 //! | vertex stage | [`transform`] (rotations, projections to clip space), [`shade::normals`] |
-//! | visibility: the method registry | [`methods`] (name, kind, exactness, settings and the two entry points of each of the seven methods) |
-//! | visibility: kernels | [`raster`] (hard rasterizer: tiles, edge functions, packed [`raster::Fragments`], backward, direct render), [`soft`] (SoftRas, DIB-R) |
+//! | visibility: the method registry | [`methods`] (name, kind, exactness, settings and the two entry points of each of the eight methods) |
+//! | visibility: kernels | [`raster`] (hard rasterizer: tiles, edge functions, packed [`raster::Fragments`], backward, direct render), [`soft`] (SoftRas, DIB-R), [`analytic`] (exact area sampling) |
 //! | visibility: tape ops | [`rasterize`](mod@rasterize) (fragments as tape variables), [`approx`] (fused `tf_mesh`, `opendr`, `nmr`, `deodr` over per-vertex colours; `tf_mesh`'s extrapolated rasterization) |
 //! | fragment stage | [`interpolate`](mod@interpolate), [`texture`], [`shade`] (lights, Phong family, SH, programmable shaders, auxiliary outputs) |
-//! | blend and boundary | [`blend`] (hard z-buffer blend), [`boundary`] (`deodr`, `opendr`, `nmr` over any shaded image) |
+//! | blend and boundary | [`blend`] (hard z-buffer blend, area-weighted blend), [`boundary`] (`deodr`, `opendr`, `nmr` over any shaded image) |
 //! | wiring | [`pipeline`] (`Scene::render`: the scene JSON through the registry) |
 //! | checking | [`check`] (gradient checks against finite differences and supersampled references, the gradcheck registry) |
 //! | shared kernels | `simd` (eight-lane `f32` arithmetic, bit-identical with and without AVX2), `scatter` (deterministic scatter-add) |
@@ -28,6 +28,7 @@
     clippy::neg_cmp_op_on_partial_ord,
     clippy::manual_contains
 )]
+pub mod analytic;
 pub mod approx;
 pub mod blend;
 pub mod boundary;

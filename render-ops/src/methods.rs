@@ -1,5 +1,5 @@
-//! The method registry: what each of the seven visibility methods is (its [`MethodInfo`]:
-//! name, [`Kind`], which gradients are exact, its paper),
+//! The method registry: what each of the eight raster methods and the ray tracer is (its
+//! [`MethodInfo`]: name, [`Kind`], which gradients are exact, its paper),
 //! the settings every method shares ([`ViewSettings`]) and those of one method
 //! ([`MethodSettings`], from which each op's own settings struct is built), and the two entry
 //! points every caller goes through:
@@ -17,16 +17,19 @@
 //! method only here. To add a method: a [`Method`] variant (scene.rs), its [`MethodInfo`] in
 //! [`Method::info`], and its arms in the two entry points.
 //!
-//! Every method composes with any shader: a new method must give both entry points.
+//! Every raster method composes with any shader (a new one must give both entry points); the
+//! ray tracer shades its own samples for now, and `render_fragments` refuses it with a typed error.
 
 use std::sync::Arc;
 
 use autodiff::{Real, Var};
 
+use crate::analytic::analytic_fragments;
 use crate::approx::{self, ApproxSettings};
-use crate::blend::blend_hard;
+use crate::blend::{blend_hard, blend_weighted};
 use crate::boundary::{self, BoundarySettings};
 use crate::error::RenderError;
+use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
 use crate::rasterize::{rasterize, render_attributes, Rasterized};
 use crate::raytrace::{raytrace, RaytraceSettings};
@@ -48,6 +51,8 @@ pub enum Kind {
     /// Monte Carlo ray tracing of the box-filtered image with shadows; boundary terms by edge
     /// sampling.
     RayTraced,
+    /// The exact visible area of every face in each pixel (box filter).
+    Area,
 }
 
 /// Which gradients of a method are those of its own forward (exact), and which approximate
@@ -122,6 +127,11 @@ impl Method {
                 Kind::RayTraced,
                 e(true, true, true),
                 "Li et al., SIGGRAPH Asia 2018 (edge sampling, redner)",
+            ),
+            Method::Analytic => (
+                Kind::Area,
+                e(true, true, true),
+                "Catmull, SIGGRAPH 1978 (analytic area sampling), differentiated",
             ),
         };
         MethodInfo {
@@ -367,7 +377,9 @@ impl MethodSettings {
 /// coverage or soft alpha). The fused fast path of each method: `hard` draws in one pass when
 /// nothing needs a gradient ([`render_attributes`]); `tf_mesh`, `opendr`, `nmr`, `deodr` are
 /// the ops of [`crate::approx`]; `softras` is [`soft::softras`]; `dibr` the hard render with
-/// DIB-R's alpha ([`soft::dibr::composite`]).
+/// DIB-R's alpha ([`soft::dibr::composite`]); `analytic` is its stage
+/// ([`analytic_fragments`]), the colours interpolated at each fragment's centroid and
+/// [`blend_weighted`] (exact for screen-space interpolation, `perspective_correct = false`).
 ///
 /// # Errors
 /// The ops' errors (shapes, settings, background length).
@@ -387,6 +399,11 @@ pub fn render_vertex_colors<'t, T: Real>(
         Method::Nmr => approx::nmr(clip, colors, faces, &s.approx()),
         Method::Deodr => approx::deodr(clip, colors, faces, &s.approx()),
         Method::SoftRas => soft::softras(clip, colors, faces, &s.softras()),
+        Method::Analytic => {
+            let a = analytic_fragments(clip, faces, &s.raster())?;
+            let col = interpolate(colors, &a.raster)?;
+            blend_weighted(col, a.weight, &a.raster.fragments, &s.view.background_of(c))
+        }
         Method::Dibr => {
             let hard = render_attributes(
                 clip,
@@ -429,6 +446,8 @@ pub type FragmentShader<'a, 't, T> =
 ///   fragments, and SoftRas's softmax over depth ([`soft::softras_aggregate`]).
 /// * `dibr`: the hard image (the nearest covering fragment of each pixel, shaded once) with
 ///   DIB-R's soft silhouette ([`soft::dibr_alpha`]) as its alpha, as the fused path does.
+/// * `analytic`: [`analytic_fragments`] (every visible face part of each pixel, its area and
+///   its values at the area centroid), the shader on those fragments, [`blend_weighted`].
 ///
 /// # Errors
 /// The ops' and the shader's errors.
@@ -475,6 +494,14 @@ pub fn render_fragments<'t, T: Real>(
              raytrace::raytrace); per-fragment shaders are not composed with it yet"
                 .into(),
         )),
+        Method::Analytic => {
+            let a = analytic_fragments(clip, faces, &s.raster())?;
+            let col = shader(&a.raster)?;
+            let bg = s
+                .view
+                .background_of(col.shape().get(1).copied().unwrap_or(0));
+            blend_weighted(col, a.weight, &a.raster.fragments, &bg)
+        }
         Method::SoftRas => {
             let frags = soft::soft_fragments(clip, faces, &s.soft_stage())?;
             let col = shader(&frags.raster)?;

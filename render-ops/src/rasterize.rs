@@ -107,6 +107,28 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
     }
 }
 
+/// The output gradient `i` of an op's backward as `f64` values in standard order.
+pub(crate) fn grad_output_f64<T: Real>(ctx: &BackwardCtx<'_, T>, i: usize) -> Vec<f64> {
+    ctx.grad_outputs[i]
+        .as_standard_layout()
+        .iter()
+        .map(|x| x.to_f64c())
+        .collect()
+}
+
+/// The outputs of a stage that yields fragments: barycentrics `[N, 3]`, NDC depth `[N]`, view
+/// depth `[N]` copied from `f`, then the per-fragment `extra` `[N]` (a soft probability, an
+/// area).
+pub(crate) fn fragment_outputs<T: Real>(f: &Fragments<T>, extra: Vec<T>) -> Vec<Tensor<T>> {
+    let n = f.len();
+    let bary =
+        ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.as_flattened().to_vec()).expect("n x 3");
+    let depth = ArrayD::from_shape_vec(IxDyn(&[n]), f.depth.clone()).expect("n");
+    let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), f.view_depth.clone()).expect("n");
+    let extra = ArrayD::from_shape_vec(IxDyn(&[n]), extra).expect("n");
+    vec![bary, depth, vdepth, extra]
+}
+
 /// `s.to_vec()`, in parallel over large blocks (written once into uninitialised memory).
 pub(crate) fn par_copy<T: Copy + Send + Sync>(s: &[T]) -> Vec<T> {
     const BLOCK: usize = 1 << 15;

@@ -423,16 +423,20 @@ pub enum Method {
     /// DEODR: discontinuity edge overdraw (de La Gorce et al.).
     #[serde(rename = "deodr")]
     Deodr,
+    /// Exact area sampling: the visible area of every face in each pixel (Catmull 1978).
+    #[serde(rename = "analytic")]
+    Analytic,
+
     /// Ray tracing with edge sampling (Li et al. 2018): shadows and their gradients.
     #[serde(rename = "raytrace")]
     Raytrace,
 }
 
 impl Method {
-    /// The seven raster methods, in the order of docs/CONVENTIONS.md (the registry's tests,
+    /// The eight raster methods, in the order of docs/CONVENTIONS.md (the registry's tests,
     /// benches and face fits iterate these; [`Method::Raytrace`] renders whole scenes, see
     /// [`Method::RAY`]).
-    pub const ALL: [Method; 7] = [
+    pub const ALL: [Method; 8] = [
         Method::Hard,
         Method::TfMesh,
         Method::OpenDr,
@@ -440,6 +444,7 @@ impl Method {
         Method::SoftRas,
         Method::Dibr,
         Method::Deodr,
+        Method::Analytic,
     ];
 
     /// The ray-traced methods.
@@ -456,6 +461,7 @@ impl Method {
             Method::Dibr => "dibr",
             Method::Deodr => "deodr",
             Method::Raytrace => "raytrace",
+            Method::Analytic => "analytic",
         }
     }
 
@@ -1067,7 +1073,7 @@ mod tests {
     #[test]
     fn json_errors_name_the_key() {
         let e = parse_err(&with("raster", r#""method": "soft""#));
-        assert!(e.starts_with("s.json: raster.method: unknown variant `soft`, expected one of `hard`, `tf_mesh`, `opendr`, `nmr`, `softras`, `dibr`, `deodr`"), "{e}");
+        assert!(e.starts_with("s.json: raster.method: unknown variant `soft`, expected one of `hard`, `tf_mesh`, `opendr`, `nmr`, `softras`, `dibr`, `deodr`, `analytic`"), "{e}");
         assert!(e.contains(" at line "), "{e}");
         let e = parse_err(&with("raster", r#""sigmaa": 1"#));
         assert!(

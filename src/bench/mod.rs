@@ -258,12 +258,17 @@ impl MethodConfig {
 /// 1e-5} (gamma 1e-4), gamma in {1e-2, 1e-3} (sigma 1e-4) and the cut-off threshold 1e-2
 /// (default 1e-4); dibr delta in {3e-5, 1/7000, 3e-4} (Kaolin's recommended range); hard with
 /// K = 1 and 4 faces per pixel; tf_mesh, opendr and nmr with one; deodr with overdraw ramps of
-/// 0.5, 1 and 2 px.
+/// 0.5, 1 and 2 px; analytic with no parameter.
 pub fn method_configs() -> Vec<MethodConfig> {
     let mut out = Vec::new();
     for m in Method::ALL {
         let mut r = Raster::with_method(m);
         match m {
+            Method::Analytic => out.push(MethodConfig {
+                raster: r,
+                params: json!({}),
+                default: true,
+            }),
             Method::Hard | Method::TfMesh | Method::OpenDr | Method::Nmr => {
                 let ks: &[u32] = if m == Method::Hard { &[1, 4] } else { &[1] };
                 for &k in ks {

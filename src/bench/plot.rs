@@ -8,7 +8,7 @@ use plotters::prelude::*;
 
 use super::{BenchError, Record, Report};
 
-const PALETTE: [RGBColor; 7] = [
+const PALETTE: [RGBColor; 8] = [
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
     RGBColor(44, 160, 44),
@@ -16,6 +16,7 @@ const PALETTE: [RGBColor; 7] = [
     RGBColor(148, 103, 189),
     RGBColor(140, 86, 75),
     RGBColor(227, 119, 194),
+    RGBColor(23, 190, 207),
 ];
 
 fn color_of(method: &str) -> RGBColor {

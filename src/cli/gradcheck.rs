@@ -108,8 +108,14 @@ pub fn check_scene_args(a: &SceneArgs) -> Result<SceneCheck, CliError> {
     let mut scene = Scene::<f64>::load(&a.scene)?;
     if let Some(m) = &a.method {
         let method = Method::from_name(m).ok_or_else(|| {
+            let names: Vec<&str> = Method::ALL
+                .iter()
+                .chain(&Method::RAY)
+                .map(|m| m.name())
+                .collect();
             CliError::Message(format!(
-                "--method '{m}': expected one of hard, tf_mesh, opendr, nmr, softras, dibr, deodr"
+                "--method '{m}': expected one of {}",
+                names.join(", ")
             ))
         })?;
         scene.desc.raster.method = method;

@@ -105,8 +105,8 @@ pub enum Command {
         /// moved one pixel right and down.
         #[arg(long, requires = "scene")]
         target: Option<PathBuf>,
-        /// Raster method instead of the scene's (hard, tf_mesh, opendr, nmr, softras, dibr,
-        /// deodr).
+        /// Method instead of the scene's (hard, tf_mesh, opendr, nmr, softras, dibr, deodr,
+        /// analytic, raytrace).
         #[arg(long, requires = "scene")]
         method: Option<String>,
         /// Reference samples per pixel along each axis (S x S supersampled hard render).

@@ -86,7 +86,7 @@ pub(crate) fn to_screen<T: Real>(
 }
 
 /// Clips the polygon `inp[..n]` to `dist(v) >= 0` (Sutherland-Hodgman), writing to `out`.
-fn clip_plane(
+pub(crate) fn clip_plane(
     inp: &[[f64; 4]; 5],
     n: usize,
     dist: impl Fn(&[f64; 4]) -> f64,

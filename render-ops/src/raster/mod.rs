@@ -79,6 +79,7 @@ mod edge;
 mod fragments;
 mod hard;
 
+pub(crate) use clip::clip_plane;
 pub use direct::render_attributes_direct;
 pub(crate) use fragments::PixelCursor;
 pub use fragments::{Fragment, Fragments};

@@ -46,7 +46,7 @@ use super::common::{
 use super::softras::{attr_weights, coverage_sigmoid, pair_backward, Pair, SoftRasOp};
 use crate::error::RenderError;
 use crate::raster::{Fragments, RasterError};
-use crate::rasterize::Rasterized;
+use crate::rasterize::{fragment_outputs, grad_output_f64, Rasterized};
 use crate::scatter::scatter_face_corners;
 
 /// Most (face, pixel) fragments one soft stage may produce (2^25, about 2 GB of fragment data
@@ -537,16 +537,8 @@ impl<T: Real> Op<T> for StageOp<T> {
     }
 
     fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let (f, prob) = (&self.fragments, &self.prob);
-        let n = f.len();
-        let bary =
-            ArrayD::from_shape_vec(IxDyn(&[n, 3]), f.bary.as_flattened().to_vec()).expect("n x 3");
-        let depth = ArrayD::from_shape_vec(IxDyn(&[n]), f.depth.clone()).expect("n");
-        let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), f.view_depth.clone()).expect("n");
-        let prob =
-            ArrayD::from_shape_vec(IxDyn(&[n]), prob.iter().map(|&x| T::from_f64c(x)).collect())
-                .expect("n");
-        Ok(vec![bary, depth, vdepth, prob])
+        let prob = self.prob.iter().map(|&x| T::from_f64c(x)).collect();
+        Ok(fragment_outputs(&self.fragments, prob))
     }
 
     /// Per fragment: its pair re-evaluated, the gradients of its barycentrics (through
@@ -559,13 +551,7 @@ impl<T: Real> Op<T> for StageOp<T> {
         }
         let f = &self.fragments;
         let n = f.len();
-        let get = |i: usize| -> Vec<f64> {
-            ctx.grad_outputs[i]
-                .as_standard_layout()
-                .iter()
-                .map(|x| x.to_f64c())
-                .collect()
-        };
+        let get = |i: usize| grad_output_f64(ctx, i);
         let (gb, gd, gv, gp) = (get(0), get(1), get(2), get(3));
         let s = &self.s;
         let (w, inv_scale, cut2) = (s.width, 1.0 / s.coverage.scale(), s.cutoff_sq());
