@@ -110,8 +110,12 @@ pub fn floats<T: Element + Real>(
         None => v.iter().copied().collect(),
     };
     let t = ArrayD::from_shape_vec(IxDyn(v.shape()), data).expect("shape of the view");
-    // NaN or Inf would otherwise reach an image silently: named like the library does.
-    RenderError::check_finite(name, &t).map_err(crate::to_py)?;
+    // NaN or Inf would otherwise reach an image silently: named like the library does (a
+    // flat scan first; the indexed search only for the message).
+    let flat = t.as_slice().expect("standard layout");
+    if !flat.iter().all(|x| x.is_finite()) {
+        RenderError::check_finite(name, &t).map_err(crate::to_py)?;
+    }
     Ok(t)
 }
 
@@ -126,12 +130,12 @@ pub fn faces(obj: &Bound<'_, PyAny>) -> PyResult<Vec<[u32; 3]>> {
             a.dtype()
         )));
     }
-    // Any integer dtype through int64 (numpy's own cast), then range-checked.
+    // Any integer dtype through C-contiguous int64 (numpy's own cast: no copy when it is
+    // already), then range-checked.
     let np = obj.py().import("numpy")?;
-    let i64s = np.call_method1("asarray", (obj, "int64"))?;
+    let i64s = np.call_method1("ascontiguousarray", (obj, "int64"))?;
     let arr = i64s.cast::<PyArrayDyn<i64>>()?.readonly();
-    let v = arr.as_array();
-    let flat: Vec<i64> = v.iter().copied().collect();
+    let flat = arr.as_slice()?;
     flat.chunks_exact(3)
         .enumerate()
         .map(|(i, f)| {
