@@ -378,21 +378,8 @@ impl<'a> Scene<'a> {
         let lights = self.lights();
         let ab = self.area_samples(&mut ctr, lights.n_area);
         let mut vis = |q| self.visible(hit.x, hit.ng, q);
-        let Some((g, acc)) = grad else {
-            let c = lights.shade(
-                &self.s.reflection,
-                hit.x,
-                hit.nraw,
-                hit.albedo,
-                self.s.eye,
-                &ab,
-                &mut vis,
-                None,
-            );
-            return [c[0], c[1], c[2], 1.0];
-        };
-        let g3 = [g[0], g[1], g[2]];
         let mut sg = ShadeGrad::default();
+        let mut grad = grad.map(|(g, acc)| ([g[0], g[1], g[2]], acc));
         let c = lights.shade(
             &self.s.reflection,
             hit.x,
@@ -401,12 +388,15 @@ impl<'a> Scene<'a> {
             self.s.eye,
             &ab,
             &mut vis,
-            Some((g3, &mut sg, &mut acc.rows)),
+            grad.as_mut()
+                .map(|(g3, acc)| (*g3, &mut sg, acc.rows.as_mut_slice())),
         );
-        if let Some((edges, index)) = area_edges {
-            self.area_edge_terms(&hit, g3, edges, index, acc);
+        if let Some((g3, acc)) = grad {
+            if let Some((edges, index)) = area_edges {
+                self.area_edge_terms(&hit, g3, edges, index, acc);
+            }
+            self.surface_backward(&hit, &sg, acc);
         }
-        self.surface_backward(&hit, &sg, acc);
         [c[0], c[1], c[2], 1.0]
     }
 

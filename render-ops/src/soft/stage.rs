@@ -151,16 +151,13 @@ impl SoftStageSettings {
 
 /// The output of [`soft_fragments`]: the fragments as a [`Rasterized`] (so that
 /// [`crate::interpolate::interpolate`], [`crate::shade::fragment_inputs`] and shaders take it
-/// as they take the hard rasterizer's), with per fragment its coverage probability and whether
-/// the pixel centre lies inside its face.
+/// as they take the hard rasterizer's), with per fragment its coverage probability.
 pub struct SoftFragments<'t, T: Real> {
     /// Fragments (pixel-major, nearest first per pixel), faces, clipped barycentrics `[N, 3]`,
     /// NDC depth `[N]` and view depth `[N]` (tape variables).
     pub raster: Rasterized<'t, T>,
     /// Coverage probability `D` per fragment `[N]` (tape variable).
     pub prob: Var<'t, T>,
-    /// Per fragment: the pixel centre lies in (or on) the face.
-    pub inside: Arc<Vec<bool>>,
 }
 
 /// Runs the soft rasterization stage over clip positions `[V, 4]` (see the module
@@ -234,7 +231,7 @@ pub fn soft_fragments<'t, T: Real>(
         .map(|r| r[2].to_f64c() / r[3].to_f64c())
         .collect();
     let bins = TileBins::with_rects(&ndc, &depth, &faces, s.width, s.height, dmax, rects, true);
-    let (fr, inside, prob) = build::<T>(&bins, &faces, &ndc_z, s);
+    let (fr, prob) = build::<T>(&bins, &faces, &ndc_z, s);
     let fragments = Arc::new(fr);
     let op = StageOp {
         fragments: fragments.clone(),
@@ -256,7 +253,6 @@ pub fn soft_fragments<'t, T: Real>(
             view_depth: outs[2],
         },
         prob: outs[3],
-        inside: Arc::new(inside),
     })
 }
 
@@ -270,7 +266,6 @@ struct Rec {
     ndc_z: f64,
     z: f64,
     prob: f64,
-    inside: bool,
     dbary: [[f64; 3]; 2],
 }
 
@@ -331,10 +326,10 @@ fn bary_derivatives(
     })
 }
 
-type Built<T> = (Fragments<T>, Vec<bool>, Vec<f64>);
+type Built<T> = (Fragments<T>, Vec<f64>);
 
 /// The forward: tiles in parallel, then the pixel-major list in parallel over image rows.
-/// Returns the fragments, the inside flags and the probabilities.
+/// Returns the fragments and the probabilities.
 fn build<T: Real>(
     bins: &TileBins,
     faces: &[[u32; 3]],
@@ -365,8 +360,7 @@ fn build<T: Real>(
                     };
                     for col in a..=b {
                         let p = [bins.px[col], py];
-                        let Some((q, d, inside)) = eval_pair(bins, fi, p, s, inv_scale, cut2)
-                        else {
+                        let Some((q, d, _)) = eval_pair(bins, fi, p, s, inv_scale, cut2) else {
                             continue;
                         };
                         let nz = q.wn[0] * ndc_z[f[0] as usize]
@@ -384,7 +378,6 @@ fn build<T: Real>(
                             ndc_z: nz,
                             z: q.z,
                             prob: d,
-                            inside,
                             dbary,
                         });
                     }
@@ -440,20 +433,18 @@ fn build<T: Real>(
     let mut depth = vec![T::zero(); n];
     let mut vdepth = vec![T::zero(); n];
     let mut prob = vec![0.0f64; n];
-    let mut inside = vec![false; n];
     let nd = if s.barycentric_derivatives { n } else { 0 };
     let mut ddx = vec![[T::zero(); 3]; nd];
     let mut ddy = vec![[T::zero(); 3]; nd];
     // Per image row, its slices of every array, then rows in parallel.
     {
         let mut rows = Vec::with_capacity(h);
-        let (mut fa, mut ba, mut da, mut va, mut pa, mut ia) = (
+        let (mut fa, mut ba, mut da, mut va, mut pa) = (
             &mut face[..],
             &mut bary[..],
             &mut depth[..],
             &mut vdepth[..],
             &mut prob[..],
-            &mut inside[..],
         );
         let (mut xa, mut ya) = (&mut ddx[..], &mut ddy[..]);
         for row in 0..h {
@@ -463,44 +454,41 @@ fn build<T: Real>(
             let (d0, d1) = std::mem::take(&mut da).split_at_mut(len);
             let (v0, v1) = std::mem::take(&mut va).split_at_mut(len);
             let (p0, p1) = std::mem::take(&mut pa).split_at_mut(len);
-            let (i0, i1) = std::mem::take(&mut ia).split_at_mut(len);
             let dl = if nd > 0 { len } else { 0 };
             let (x0, x1) = std::mem::take(&mut xa).split_at_mut(dl);
             let (y0, y1) = std::mem::take(&mut ya).split_at_mut(dl);
-            rows.push((row, f0, b0, d0, v0, p0, i0, x0, y0));
-            (fa, ba, da, va, pa, ia, xa, ya) = (f1, b1, d1, v1, p1, i1, x1, y1);
+            rows.push((row, f0, b0, d0, v0, p0, x0, y0));
+            (fa, ba, da, va, pa, xa, ya) = (f1, b1, d1, v1, p1, x1, y1);
         }
-        rows.into_par_iter()
-            .for_each(|(row, f, b, d, v, p, ins, x, y)| {
-                let mut i = 0;
-                let ty = row / TILE;
-                for tx in 0..bins.tiles_x {
-                    let (recs, count) = &tiles[ty * bins.tiles_x + tx];
-                    if recs.is_empty() {
-                        continue;
-                    }
-                    // The tile's records of this row: after those of the rows above.
-                    let lr = row % TILE;
-                    let start: usize = count[..lr * TILE].iter().map(|&c| c as usize).sum();
-                    let len: usize = count[lr * TILE..(lr + 1) * TILE]
-                        .iter()
-                        .map(|&c| c as usize)
-                        .sum();
-                    for r in &recs[start..start + len] {
-                        f[i] = r.face;
-                        b[i] = r.bary.map(T::from_f64c);
-                        d[i] = T::from_f64c(r.ndc_z);
-                        v[i] = T::from_f64c(r.z);
-                        p[i] = r.prob;
-                        ins[i] = r.inside;
-                        if !x.is_empty() {
-                            x[i] = r.dbary[0].map(T::from_f64c);
-                            y[i] = r.dbary[1].map(T::from_f64c);
-                        }
-                        i += 1;
-                    }
+        rows.into_par_iter().for_each(|(row, f, b, d, v, p, x, y)| {
+            let mut i = 0;
+            let ty = row / TILE;
+            for tx in 0..bins.tiles_x {
+                let (recs, count) = &tiles[ty * bins.tiles_x + tx];
+                if recs.is_empty() {
+                    continue;
                 }
-            });
+                // The tile's records of this row: after those of the rows above.
+                let lr = row % TILE;
+                let start: usize = count[..lr * TILE].iter().map(|&c| c as usize).sum();
+                let len: usize = count[lr * TILE..(lr + 1) * TILE]
+                    .iter()
+                    .map(|&c| c as usize)
+                    .sum();
+                for r in &recs[start..start + len] {
+                    f[i] = r.face;
+                    b[i] = r.bary.map(T::from_f64c);
+                    d[i] = T::from_f64c(r.ndc_z);
+                    v[i] = T::from_f64c(r.z);
+                    p[i] = r.prob;
+                    if !x.is_empty() {
+                        x[i] = r.dbary[0].map(T::from_f64c);
+                        y[i] = r.dbary[1].map(T::from_f64c);
+                    }
+                    i += 1;
+                }
+            }
+        });
     }
     let fr = Fragments {
         width: w,
@@ -514,7 +502,7 @@ fn build<T: Real>(
         dbary_dx: ddx,
         dbary_dy: ddy,
     };
-    (fr, inside, prob)
+    (fr, prob)
 }
 
 struct StageOp<T: Real> {
