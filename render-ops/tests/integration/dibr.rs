@@ -19,7 +19,7 @@ use render_ops::rasterize::rasterize;
 use render_ops::scene::Scene;
 use render_ops::soft::{dibr, dibr_alpha, DibrSettings};
 
-mod common;
+use crate::common;
 use common::{clip_row, t2};
 
 /// Two overlapping triangles (depth order swapping across the image), a small third one

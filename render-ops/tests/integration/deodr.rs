@@ -15,7 +15,7 @@ use render_ops::mesh::Mesh;
 use render_ops::scene::Scene;
 use render_ops::transform::to_clip;
 
-mod common;
+use crate::common;
 use common::{clip_row, perspective_clip, smooth_colours, t2, weights};
 
 /// A front triangle partly in front of a larger one (occlusion edges over a surface, boundary

@@ -1,6 +1,6 @@
 //! The `tapestry` binary as a user runs it: outputs, exit codes, one-line errors.
 
-mod common;
+use crate::common;
 
 use std::process::Command;
 

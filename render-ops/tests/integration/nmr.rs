@@ -18,7 +18,7 @@ use render_ops::mesh::Mesh;
 use render_ops::raster::RasterError;
 use render_ops::rasterize::rasterize;
 
-mod common;
+use crate::common;
 use common::{clip_row, perspective_clip, smooth_colours, t2, weights};
 
 const BG: [f64; 3] = [0.1, 0.2, 0.3];

@@ -7,7 +7,7 @@
 //! the toon / rim closure shader through `softras` and `dibr`; a pose fit of a textured mesh
 //! from its silhouettes through `softras`.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 

@@ -1,7 +1,7 @@
 //! The hard pipeline end to end: scene JSON -> clip -> rasterize -> interpolate -> blend,
 //! against the peer kit's reference renders, and gradient-checked through the tape.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 

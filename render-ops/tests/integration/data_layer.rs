@@ -10,7 +10,7 @@ use render_ops::mesh::Mesh;
 use render_ops::obj::{load_obj, ObjError};
 use render_ops::scene::{Method, Scene, SceneError, Shading};
 
-mod common;
+use crate::common;
 
 fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

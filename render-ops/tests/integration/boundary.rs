@@ -8,7 +8,7 @@
 //! rasterize / interpolate, `approx::tf_mesh::{rasterize_extrapolated, blend_band}`) is checked
 //! the same way: gradcheck, agreement with its fused op, and the scenes.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 

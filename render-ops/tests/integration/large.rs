@@ -1,7 +1,7 @@
 //! Large inputs: a 2M-face mesh rasterizes at 2048 x 2048 with the hard method within bounded
 //! memory (peak RSS read from /proc/self/status, VmHWM), forward and backward through the tape.
 //! About 3 s in the test profile; `--nocapture` prints the timings and peak memory:
-//! `cargo test -p tapestry-render-ops --test large -- --nocapture` (add `--release` for the
+//! `cargo test -p tapestry-render-ops --test integration large:: -- --nocapture` (add `--release` for the
 //! optimised timings).
 
 use std::sync::Arc;

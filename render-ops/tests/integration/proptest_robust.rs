@@ -5,7 +5,7 @@
 //! and of a valid scene JSON through the loaders (and small valid scenes through the renderer):
 //! no panic.
 //!
-//! `ROBUST_CASES=5000 cargo test -p tapestry-render-ops --test proptest_robust` runs more cases
+//! `ROBUST_CASES=5000 cargo test -p tapestry-render-ops --test integration proptest_robust::` runs more cases
 //! (5000 a property take about 6 s in the dev profile). Shrunk failures are kept in
 //! `proptest_robust.proptest-regressions` beside this file and re-run first.
 

@@ -2,7 +2,7 @@
 //! gradients against finite differences, an inverse task through a shadow, hard cases,
 //! precision and determinism.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 

@@ -17,7 +17,7 @@ use render_ops::scene::Scene;
 use render_ops::soft::{softras, SoftSettings};
 use render_ops::transform::to_clip;
 
-mod common;
+use crate::common;
 use common::{clip_row, t2};
 
 /// Two triangles overlapping in the middle whose depth order swaps across the image (the first
