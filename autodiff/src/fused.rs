@@ -4,8 +4,11 @@
 //! needed (read, fed to an op the fuser does not handle, or asked for with
 //! [`crate::Tape::materialize`]) the graph behind it becomes ONE tape op, [`FusedOp`], that
 //! evaluates it chunk by chunk, so that a chunk's intermediates stay in cache and are never
-//! written to memory. Its backward recomputes each chunk's forward in cache and runs the chain
-//! rule there: the op stores only its inputs and outputs (checkpointing at chunk granularity).
+//! written to memory. Its backward is prepared in one of two ways ([`FusedBackward`]): it
+//! recomputes each chunk's forward in cache and runs the chain rule there (the op stores only
+//! its inputs and outputs: checkpointing at chunk granularity), or, for ops with few input and
+//! output channels, the forward runs the reverse sweep right away with a unit seed per output
+//! channel and keeps the per-row Jacobian (preaccumulation), so that the backward is `g J`.
 //!
 //! Layout: every node is either *row-varying* (its axis 0 is the fused op's row axis of length
 //! `N`, the outputs' first dimension, sliced into chunks of whole rows) or *row-invariant* (it
@@ -24,6 +27,15 @@
 //! rounding and is equal to the same bound, not bit for bit. A fused op is recorded on the tape
 //! when it is materialised, so contributions from several ops may reach a shared input in another
 //! order than on the eager tape: equal up to the rounding of those terms' sum.
+//!
+//! A preaccumulated gradient is `g * (d_L * ... * d_1)` (the sweep's products with seed 1,
+//! then the output gradient) where eager computes `((g * d_L) * ...) * d_1` with the same
+//! factors: bit for bit when `g` = 1 (a `sum` after the op), otherwise within `2 (L + 1) u`
+//! relative along a chain of `L` ops (`u` the unit roundoff); where paths join, the sums
+//! `sum_o g_o J_o` round in another order than eager's single sweep, so the difference is a few
+//! ulp of the largest adjoint inside the graph (which `normalize` near a zero vector makes up
+//! to `1 / eps` times `|g|`). Gradients of row inputs stay bit-identical across thread counts
+//! and chunk sizes (each row's Jacobian comes from its own elements).
 
 // Kernels index re-sliced slices of one length (`&a[..n]`): bounds checks vanish and the
 // loops vectorise.
