@@ -4,8 +4,11 @@
 //! needed (read, fed to an op the fuser does not handle, or asked for with
 //! [`crate::Tape::materialize`]) the graph behind it becomes ONE tape op, [`FusedOp`], that
 //! evaluates it chunk by chunk, so that a chunk's intermediates stay in cache and are never
-//! written to memory. Its backward recomputes each chunk's forward in cache and runs the chain
-//! rule there: the op stores only its inputs and outputs (checkpointing at chunk granularity).
+//! written to memory. Its backward is prepared in one of two ways ([`FusedBackward`]): it
+//! recomputes each chunk's forward in cache and runs the chain rule there (the op stores only
+//! its inputs and outputs: checkpointing at chunk granularity), or, for ops with few input and
+//! output channels, the forward runs the reverse sweep right away with a unit seed per output
+//! channel and keeps the per-row Jacobian (preaccumulation), so that the backward is `g J`.
 //!
 //! Layout: every node is either *row-varying* (its axis 0 is the fused op's row axis of length
 //! `N`, the outputs' first dimension, sliced into chunks of whole rows) or *row-invariant* (it
@@ -24,6 +27,15 @@
 //! rounding and is equal to the same bound, not bit for bit. A fused op is recorded on the tape
 //! when it is materialised, so contributions from several ops may reach a shared input in another
 //! order than on the eager tape: equal up to the rounding of those terms' sum.
+//!
+//! A preaccumulated gradient is `g * (d_L * ... * d_1)` (the sweep's products with seed 1,
+//! then the output gradient) where eager computes `((g * d_L) * ...) * d_1` with the same
+//! factors: bit for bit when `g` = 1 (a `sum` after the op), otherwise within `2 (L + 1) u`
+//! relative along a chain of `L` ops (`u` the unit roundoff); where paths join, the sums
+//! `sum_o g_o J_o` round in another order than eager's single sweep, so the difference is a few
+//! ulp of the largest adjoint inside the graph (which `normalize` near a zero vector makes up
+//! to `1 / eps` times `|g|`). Gradients of row inputs stay bit-identical across thread counts
+//! and chunk sizes (each row's Jacobian comes from its own elements).
 
 // Kernels index re-sliced slices of one length (`&a[..n]`): bounds checks vanish and the
 // loops vectorise.
@@ -49,6 +61,36 @@ pub const MAX_LANE: usize = 8;
 
 /// Largest row-invariant node (elements) the fuser recomputes in every chunk.
 const INV_MAX: usize = 4096;
+
+/// Most input channels (elements per row of the inputs that require a gradient) of a fused op
+/// that [`FusedBackward::Auto`] preaccumulates.
+pub const PREACC_MAX_IN: usize = 4;
+
+/// How a fused op prepares its backward.
+///
+/// - `Recompute`: the op keeps only its inputs and outputs; the backward recomputes each
+///   chunk's forward in cache, then sweeps it in reverse (checkpointing at chunk granularity).
+/// - `Preaccumulate`: the forward sweeps each chunk in reverse right away, once per output
+///   channel with a unit seed, and keeps the per-row Jacobian `d out / d in` (`n_in x n_out`
+///   values per row, Griewank & Walther, *Evaluating Derivatives*, 2nd ed., 2008, sec. 10.2
+///   "preaccumulation"); the backward is the product `g J`, memory-bound, with no recompute.
+///   Only for ops whose inputs that require a gradient all vary by row (a per-row Jacobian
+///   with respect to a broadcast input would need its sum over rows deferred to the seed).
+/// - `Auto` (default): `Preaccumulate` when the op has one output channel (`[N]` or `[N, 1]`
+///   outputs, one per row, that carry a gradient) and at most [`PREACC_MAX_IN`] input
+///   channels: one sweep in the forward replaces the backward's recompute plus the same sweep,
+///   so it never does more arithmetic, and its Jacobian (at most 4 values per row) is no more
+///   bytes than the inputs a recompute reads again. `Recompute` otherwise.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FusedBackward {
+    /// Preaccumulate by the rule above.
+    #[default]
+    Auto,
+    /// Always recompute in the backward.
+    Recompute,
+    /// Preaccumulate wherever the inputs allow it (tests and measurements).
+    Preaccumulate,
+}
 
 /// What a recorded node computes.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -103,6 +145,8 @@ pub(crate) struct DagNode<T> {
 pub(crate) struct Dag<T> {
     pub nodes: Vec<DagNode<T>>,
     pub ext_shapes: Vec<Vec<usize>>,
+    /// Whether each tape input requires a gradient.
+    pub ext_rg: Vec<bool>,
     pub data: Vec<Tensor<T>>,
     /// Node indices of the outputs.
     pub targets: Vec<usize>,
@@ -146,6 +190,26 @@ struct ExtInfo {
     w: usize,
 }
 
+/// One output channel of a preaccumulated op: lane `lane` of the `w` elements per row of
+/// output `out` (node `node`).
+#[derive(Clone, Copy)]
+struct Channel {
+    out: usize,
+    node: usize,
+    lane: usize,
+    w: usize,
+}
+
+/// The preaccumulation plan of a fused op and, once the forward ran, its Jacobians.
+struct Preacc<T> {
+    channels: Vec<Channel>,
+    /// The inputs whose Jacobian is kept (they require a gradient and reach an output).
+    needs: Vec<bool>,
+    /// Per input `k` with `needs[k]`: `d out_o / d in_k[c]` at index `(r * n_out + o) * w_k + c`
+    /// for row `r`, output channel `o`, input lane `c`.
+    jac: Vec<Option<Vec<T>>>,
+}
+
 /// The tape op of a fused region (see the module docs).
 pub struct FusedOp<T: Real> {
     nodes: Vec<PNode<T>>,
@@ -158,6 +222,7 @@ pub struct FusedOp<T: Real> {
     n_rows: usize,
     rows_per_chunk: usize,
     anomaly: bool,
+    preacc: Option<Preacc<T>>,
 }
 
 /// `shape` padded with leading ones to `rank`.
@@ -211,7 +276,12 @@ fn access(out: &[usize], out_row: bool, a: &[usize], a_row: bool) -> Access {
 
 /// Plans the fused op of `dag`, or `None` when its shapes do not fit the row/chunk scheme
 /// (the caller then evaluates the nodes eagerly).
-pub(crate) fn plan<T: Real>(dag: Dag<T>, chunk: usize, anomaly: bool) -> Option<FusedOp<T>> {
+pub(crate) fn plan<T: Real>(
+    dag: Dag<T>,
+    chunk: usize,
+    anomaly: bool,
+    mode: FusedBackward,
+) -> Option<FusedOp<T>> {
     let nn = dag.nodes.len();
     let n_in = dag.ext_shapes.len();
     let first = &dag.nodes[dag.targets[0]].shape;
@@ -368,6 +438,7 @@ pub(crate) fn plan<T: Real>(dag: Dag<T>, chunk: usize, anomaly: bool) -> Option<
                 .collect(),
         });
     }
+    let preacc = preaccumulation(&dag, &ext, &ext_live, rowed, &nodes, mode);
     Some(FusedOp {
         nodes,
         ext,
@@ -387,6 +458,55 @@ pub(crate) fn plan<T: Real>(dag: Dag<T>, chunk: usize, anomaly: bool) -> Option<
         n_rows,
         rows_per_chunk,
         anomaly,
+        preacc,
+    })
+}
+
+/// The preaccumulation plan of a fused op under `mode` (see [`FusedBackward`]), or `None`
+/// when its backward recomputes.
+fn preaccumulation<T: Real>(
+    dag: &Dag<T>,
+    ext: &[ExtInfo],
+    ext_live: &[bool],
+    rowed: bool,
+    nodes: &[PNode<T>],
+    mode: FusedBackward,
+) -> Option<Preacc<T>> {
+    if mode == FusedBackward::Recompute || !rowed {
+        return None;
+    }
+    let needs: Vec<bool> = (0..ext_live.len())
+        .map(|k| ext_live[k] && dag.ext_rg[k])
+        .collect();
+    if needs.iter().zip(ext).any(|(&n, e)| n && !e.row) {
+        return None;
+    }
+    let n_in: usize = needs
+        .iter()
+        .zip(ext)
+        .filter(|(&n, _)| n)
+        .map(|(_, e)| e.w)
+        .sum();
+    let mut channels = Vec::new();
+    for (out, &node) in dag.targets.iter().enumerate() {
+        let nd = &nodes[node];
+        if nd.live {
+            channels.extend((0..nd.w).map(|lane| Channel {
+                out,
+                node,
+                lane,
+                w: nd.w,
+            }));
+        }
+    }
+    let auto = channels.len() == 1 && n_in <= PREACC_MAX_IN;
+    if n_in == 0 || channels.is_empty() || (mode == FusedBackward::Auto && !auto) {
+        return None;
+    }
+    Some(Preacc {
+        channels,
+        needs,
+        jac: Vec::new(),
     })
 }
 
@@ -568,6 +688,33 @@ fn unary_fwd<T: Real>(k: Unary<T>, o: &mut [T], x: &[T]) {
     }
 }
 
+/// `o = sin x` and `d = cos x` (with `cos`: `o = cos x`, `d = sin x`) from one argument
+/// reduction: the bits of `unary_fwd`'s `sin` and `cos` (fast kernels where `k_trig_ok`, libm
+/// elsewhere), with the derivative's factor kept for the backward sweep.
+#[inline(always)]
+fn sincos_fwd<T: Real>(o: &mut [T], d: &mut [T], x: &[T], cos: bool) {
+    let n = o.len();
+    let (d, x) = (&mut d[..n], &x[..n]);
+    let pick = |(s, c): (T, T)| if cos { (c, s) } else { (s, c) };
+    let exact = |v: T| pick((v.sin(), v.cos()));
+    if T::FAST_MATH {
+        for i in 0..n {
+            (o[i], d[i]) = pick(x[i].k_sincos());
+        }
+        if !x.iter().fold(true, |acc, &v| acc & v.k_trig_ok()) {
+            for i in 0..n {
+                if !x[i].k_trig_ok() {
+                    (o[i], d[i]) = exact(x[i]);
+                }
+            }
+        }
+    } else {
+        for i in 0..n {
+            (o[i], d[i]) = exact(x[i]);
+        }
+    }
+}
+
 #[inline(always)]
 fn at_s<T>(x: Opd<'_, T>) -> &[T] {
     match x {
@@ -725,6 +872,10 @@ fn binary_bwd<T: Real>(kind: Binary, k: usize, o: &mut [T], g: &[T], a: Opd<T>, 
 /// Per-thread buffers of the chunk interpreter.
 struct Scratch<T> {
     vals: Vec<Vec<T>>,
+    /// Derivatives kept by a forward for the sweep that follows (`cos x` of a `sin` node);
+    /// `dset` flags the nodes that have one.
+    derivs: Vec<Vec<T>>,
+    dset: Vec<bool>,
     grads: Vec<Vec<T>>,
     gset: Vec<bool>,
     egrads: Vec<Vec<T>>,
@@ -738,6 +889,8 @@ impl<T: Real> Scratch<T> {
     fn new(nodes: usize, ext: usize) -> Self {
         Scratch {
             vals: (0..nodes).map(|_| Vec::new()).collect(),
+            derivs: (0..nodes).map(|_| Vec::new()).collect(),
+            dset: vec![false; nodes],
             grads: (0..nodes).map(|_| Vec::new()).collect(),
             gset: vec![false; nodes],
             egrads: (0..ext).map(|_| Vec::new()).collect(),
@@ -818,9 +971,10 @@ impl<T: Real> FusedOp<T> {
     }
 
     /// Evaluates every node on one chunk into `s.vals`; with anomaly checks on, returns the
-    /// first node holding a non-finite value.
+    /// first node holding a non-finite value. With `keep` (a backward sweep follows), live
+    /// `sin` and `cos` nodes also keep their derivative's factor in `s.derivs`.
     #[inline(always)]
-    fn eval_forward(&self, c: &Chunk<'_, T>, s: &mut Scratch<T>) -> Option<usize> {
+    fn eval_forward(&self, c: &Chunk<'_, T>, s: &mut Scratch<T>, keep: bool) -> Option<usize> {
         let mut bad = None;
         let [e0, e1, e2] = &mut s.exp;
         for (j, nd) in self.nodes.iter().enumerate() {
@@ -828,7 +982,14 @@ impl<T: Real> FusedOp<T> {
             let (done, rest) = s.vals.split_at_mut(j);
             let out = sized(&mut rest[0], n);
             let done: &[Vec<T>] = done;
+            s.dset[j] = false;
             match nd.kind {
+                Kind::Unary(k @ (Unary::Sin | Unary::Cos)) if keep && nd.live => {
+                    let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
+                    let d = sized(&mut s.derivs[j], n);
+                    sincos_fwd(out, d, at_s(x), k == Unary::Cos);
+                    s.dset[j] = true;
+                }
                 Kind::Unary(k) => {
                     let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
                     unary_fwd(k, out, at_s(x));
@@ -959,6 +1120,8 @@ impl<T: Real> FusedOp<T> {
         let mut bad = None;
         let Scratch {
             vals,
+            derivs,
+            dset,
             grads,
             gset,
             egrads,
@@ -1012,9 +1175,18 @@ impl<T: Real> FusedOp<T> {
                 Kind::Unary(k) => {
                     let (src, acc) = (nd.args[0].0, &nd.args[0].1);
                     if wants(src) {
-                        let x = at_s(self.operand(src, acc, n, nd.w, vals, c, e0));
                         let t = sized(tmp, n);
-                        unary_bwd(k, t, g, x, y);
+                        if dset[j] {
+                            // The factor the forward kept: `cos x` of `sin`, `sin x` of `cos`.
+                            let (d, z) = (Opd::S(&derivs[j][..]), Opd::C(T::zero()));
+                            match k {
+                                Unary::Sin => ew3(t, g, d, z, |g, c, _| g * c),
+                                _ => ew3(t, g, d, z, |g, s, _| -g * s),
+                            }
+                        } else {
+                            let x = at_s(self.operand(src, acc, n, nd.w, vals, c, e0));
+                            unary_bwd(k, t, g, x, y);
+                        }
                         give!(src, acc, t);
                     }
                 }
@@ -1217,7 +1389,7 @@ macro_rules! multiversion {
     };
 }
 
-multiversion!(forward_chunk, eval_forward, (c: &Chunk<'_, T>, s: &mut Scratch<T>) -> Option<usize>);
+multiversion!(forward_chunk, eval_forward, (c: &Chunk<'_, T>, s: &mut Scratch<T>, keep: bool) -> Option<usize>);
 multiversion!(backward_chunk, eval_backward, (c: &Chunk<'_, T>, s: &mut Scratch<T>, needs: &[bool]) -> Option<usize>);
 
 impl<T: Real> Op<T> for FusedOp<T> {
@@ -1235,9 +1407,23 @@ impl<T: Real> Op<T> for FusedOp<T> {
             .map(|s| Vec::with_capacity(s.iter().product()))
             .collect();
         let ptrs: Vec<SyncPtr<T>> = outs.iter_mut().map(|o| SyncPtr(o.as_mut_ptr())).collect();
+        // The Jacobians of a preaccumulated op, `n_rows x n_out x w` per input that needs one.
+        let n_out = this.preacc.as_ref().map_or(0, |p| p.channels.len());
+        let mut jac: Vec<Option<Vec<T>>> = match &this.preacc {
+            Some(p) => (0..this.n_in)
+                .map(|k| {
+                    p.needs[k].then(|| Vec::with_capacity(this.n_rows * n_out * this.ext[k].w))
+                })
+                .collect(),
+            None => Vec::new(),
+        };
+        let jptrs: Vec<Option<SyncPtr<T>>> = jac
+            .iter_mut()
+            .map(|j| j.as_mut().map(|j| SyncPtr(j.as_mut_ptr())))
+            .collect();
         let bad = this.over_chunks(|i, s| {
             let c = this.chunk(i, &ext);
-            let bad = forward_chunk(this, &c, s);
+            let bad = forward_chunk(this, &c, s, n_out > 0);
             for (&j, p) in this.out_nodes.iter().zip(&ptrs) {
                 let nd = &this.nodes[j];
                 let at = if nd.row { c.r0 * nd.w } else { 0 };
@@ -1245,12 +1431,15 @@ impl<T: Real> Op<T> for FusedOp<T> {
                 // buffer has room for all rows.
                 unsafe { p.write(at, &s.vals[j]) };
             }
+            if let Some(p) = &this.preacc {
+                this.preaccumulate_chunk(p, &c, s, &jptrs);
+            }
             bad
         });
         if let Some(j) = bad.into_iter().flatten().min() {
             return Err(this.anomaly_error(j, Pass::Forward));
         }
-        Ok(outs
+        let outs = outs
             .into_iter()
             .zip(&this.out_shapes)
             .map(|(mut v, shape)| {
@@ -1259,10 +1448,156 @@ impl<T: Real> Op<T> for FusedOp<T> {
                 unsafe { v.set_len(shape.iter().product()) };
                 Tensor::from_shape_vec(ndarray::IxDyn(shape), v).expect("output shape")
             })
-            .collect())
+            .collect();
+        if let Some(p) = &mut self.preacc {
+            for (k, j) in jac.iter_mut().enumerate() {
+                if let Some(j) = j {
+                    // SAFETY: every chunk wrote its rows of every kept Jacobian.
+                    unsafe { j.set_len(self.n_rows * n_out * self.ext[k].w) };
+                }
+            }
+            p.jac = jac;
+        }
+        Ok(outs)
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+        let needs: Vec<bool> = (0..self.n_in)
+            .map(|k| ctx.needs_grad[k] && self.ext_live[k])
+            .collect();
+        let Some(grads) = self
+            .preacc
+            .as_ref()
+            .and_then(|p| self.backward_preaccumulated(p, ctx, &needs))
+        else {
+            return self.backward_recompute(ctx);
+        };
+        if self.anomaly
+            && grads
+                .iter()
+                .flatten()
+                .any(|g| !g.iter().all(|v| v.is_finite()))
+        {
+            // Name the node as the eager tape would: the chunks' reverse sweeps with the
+            // actual output gradients.
+            return self.backward_recompute(ctx);
+        }
+        Ok(grads
+            .into_iter()
+            .zip(ctx.inputs)
+            .map(|(g, x)| {
+                g.map(|g| Tensor::from_shape_vec(ndarray::IxDyn(x.shape()), g).expect("shape"))
+            })
+            .collect())
+    }
+}
+
+impl<T: Real> FusedOp<T> {
+    /// The sweeps of a preaccumulated op over one chunk whose forward is in `s`: one per
+    /// output channel, seeded with ones at that channel; the inputs' gradients it leaves are
+    /// the chunk's rows of the Jacobian for that channel. (Non-finite derivatives are named,
+    /// with anomaly checks on, by the backward.)
+    fn preaccumulate_chunk(
+        &self,
+        p: &Preacc<T>,
+        c: &Chunk<'_, T>,
+        s: &mut Scratch<T>,
+        jptrs: &[Option<SyncPtr<T>>],
+    ) {
+        let (n_out, rows) = (p.channels.len(), c.r1 - c.r0);
+        for (o, ch) in p.channels.iter().enumerate() {
+            s.gset.iter_mut().for_each(|f| *f = false);
+            s.eset.iter_mut().for_each(|f| *f = false);
+            let seed = sized(&mut s.grads[ch.node], rows * ch.w);
+            for (e, v) in seed.iter_mut().enumerate() {
+                *v = if e % ch.w == ch.lane {
+                    T::one()
+                } else {
+                    T::zero()
+                };
+            }
+            s.gset[ch.node] = true;
+            backward_chunk(self, c, s, &p.needs);
+            for (k, ptr) in jptrs.iter().enumerate() {
+                let Some(ptr) = *ptr else { continue };
+                let w = self.ext[k].w;
+                if !s.eset[k] {
+                    sized(&mut s.egrads[k], rows * w).fill(T::zero());
+                }
+                let src = &s.egrads[k][..rows * w];
+                if n_out == 1 {
+                    // SAFETY: this chunk's rows of the Jacobian, written by this chunk only.
+                    unsafe { ptr.write(c.r0 * w, src) };
+                } else {
+                    for r in 0..rows {
+                        let at = ((c.r0 + r) * n_out + o) * w;
+                        // SAFETY: as above, channel `o` of row `r0 + r`.
+                        unsafe { ptr.write(at, &src[r * w..(r + 1) * w]) };
+                    }
+                }
+            }
+        }
+    }
+
+    /// The backward of a preaccumulated op: `g_in[r, c] = sum_o g_o[r] J[r, o, c]` (output
+    /// channels in order), in parallel over blocks of rows (elementwise: the same bits for any
+    /// thread count); `None` when an input needs a gradient the forward kept no Jacobian for.
+    fn backward_preaccumulated(
+        &self,
+        p: &Preacc<T>,
+        ctx: &BackwardCtx<'_, T>,
+        needs: &[bool],
+    ) -> Option<Vec<Option<Vec<T>>>> {
+        if p.jac.is_empty() || needs.iter().zip(&p.jac).any(|(&n, j)| n && j.is_none()) {
+            return None;
+        }
+        /// Rows per parallel task.
+        const BLOCK: usize = 1 << 14;
+        let gouts = flat_refs(ctx.grad_outputs);
+        let n_out = p.channels.len();
+        let grads = (0..self.n_in)
+            .map(|k| {
+                if !needs[k] {
+                    return None;
+                }
+                let jac = p.jac[k].as_deref().expect("checked above");
+                let w = self.ext[k].w;
+                let mut gx: Vec<T> = Vec::with_capacity(self.n_rows * w);
+                let spare = &mut gx.spare_capacity_mut()[..self.n_rows * w];
+                spare
+                    .par_chunks_mut(BLOCK * w)
+                    .enumerate()
+                    .for_each(|(b, gxb)| {
+                        let r0 = b * BLOCK;
+                        let ch0 = p.channels[0];
+                        if n_out == 1 && ch0.w == 1 && w == 1 {
+                            let (g, jac) = (&gouts[ch0.out][r0..], &jac[r0..]);
+                            for ((o, &g), &j) in gxb.iter_mut().zip(g).zip(jac) {
+                                o.write(g * j);
+                            }
+                            return;
+                        }
+                        for (e, o) in gxb.iter_mut().enumerate() {
+                            let (r, c) = (r0 + e / w, e % w);
+                            let term = |o: usize, ch: &Channel| {
+                                gouts[ch.out][r * ch.w + ch.lane] * jac[(r * n_out + o) * w + c]
+                            };
+                            let mut acc = term(0, &ch0);
+                            for (o, ch) in p.channels.iter().enumerate().skip(1) {
+                                acc += term(o, ch);
+                            }
+                            o.write(acc);
+                        }
+                    });
+                // SAFETY: the blocks wrote every element.
+                unsafe { gx.set_len(self.n_rows * w) };
+                Some(gx)
+            })
+            .collect();
+        Some(grads)
+    }
+
+    fn backward_recompute(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let flat = flat(ctx.inputs);
         let ext = self.ext_values(&flat);
         let gouts: Vec<Cow<'_, [T]>> = flat_refs(ctx.grad_outputs);
@@ -1281,7 +1616,7 @@ impl<T: Real> Op<T> for FusedOp<T> {
             .collect();
         let results = self.over_chunks(|i, s| {
             let c = self.chunk(i, &ext);
-            forward_chunk(self, &c, s);
+            forward_chunk(self, &c, s, true);
             s.gset.iter_mut().for_each(|f| *f = false);
             s.eset.iter_mut().for_each(|f| *f = false);
             for (&j, g) in self.out_nodes.iter().zip(&gouts) {

@@ -57,6 +57,12 @@ pub trait Real:
     fn k_cos(self) -> Self {
         self.cos()
     }
+    /// `(k_sin, k_cos)` from one argument reduction (the same bits as the two calls).
+    #[doc(hidden)]
+    #[inline(always)]
+    fn k_sincos(self) -> (Self, Self) {
+        (self.k_sin(), self.k_cos())
+    }
     #[doc(hidden)]
     #[inline(always)]
     fn k_trig_ok(self) -> bool {
@@ -107,6 +113,10 @@ impl Real for f32 {
     #[inline(always)]
     fn k_cos(self) -> Self {
         crate::vmath::cos(self)
+    }
+    #[inline(always)]
+    fn k_sincos(self) -> (Self, Self) {
+        crate::vmath::sincos(self)
     }
     #[inline(always)]
     fn k_trig_ok(self) -> bool {

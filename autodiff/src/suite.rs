@@ -796,7 +796,45 @@ pub fn builtin_cases() -> Vec<Case> {
             [Uniform(0.5, 1.5), Uniform(0.5, 1.5)],
             |t, x| ((x[0] * x[1] + c::<T>(1.0)).ln().sigmoid() / x[1]).matmul(x[1])
         ),
+        // ---- fused regions (`Tape::fused`), both backward strategies, several chunks ----
+        case!(
+            "fused/recompute",
+            [[5, 3], [5, 1], [3]],
+            [U, POS, U],
+            |t, x| fused_case(t, x[0], x[1], x[2], crate::fused::FusedBackward::Recompute)
+        ),
+        case!("fused/preaccumulate", [[5, 3], [5, 1]], [U, POS], |t, x| {
+            let light =
+                t.constant(crate::tensor::from_vec(&[3], vec![c(0.3), c(-0.6), c(0.9)]).unwrap());
+            fused_case(
+                t,
+                x[0],
+                x[1],
+                light,
+                crate::fused::FusedBackward::Preaccumulate,
+            )
+        }),
     ]
+}
+
+/// A shader-like fused region over rows (`[N, 3]`, `[N, 1]` and a broadcast `[3]`) in chunks
+/// of two rows, its backward prepared by `mode` (preaccumulation needs the broadcast input
+/// to be a constant).
+fn fused_case<'t, T: Real>(
+    t: &'t Tape<T>,
+    normal: Var<'t, T>,
+    scale: Var<'t, T>,
+    light: Var<'t, T>,
+    mode: crate::fused::FusedBackward,
+) -> Var<'t, T> {
+    t.set_fused_chunk(6);
+    t.set_fused_backward(mode);
+    let y = t.fused(|| {
+        let n = normal.normalize(c(1e-9));
+        let d = (n * light).sum_axes(&[-1], true);
+        (d.sin() * scale.sqrt() + n.tanh()).sum_axes(&[-1], false)
+    });
+    (y * y).sum()
 }
 
 #[cfg(test)]

@@ -18,7 +18,7 @@ use ndarray::{ArrayD, IxDyn};
 use smallvec::SmallVec;
 
 use crate::error::{AutodiffError, Pass, Result};
-use crate::fused::{Arg, Dag, DagNode, Kind, DEFAULT_CHUNK};
+use crate::fused::{Arg, Dag, DagNode, FusedBackward, Kind, DEFAULT_CHUNK};
 use crate::ops::elementwise::{BinaryOp, MulSelfOp, UnaryOp, WhereOp};
 use crate::ops::reduce::SumOp;
 use crate::ops::vector::NormalizeOp;
@@ -116,6 +116,7 @@ pub struct Tape<T: Real> {
     anomaly: Cell<bool>,
     fusing: Cell<u32>,
     fuse_chunk: Cell<usize>,
+    fuse_backward: Cell<FusedBackward>,
 }
 
 impl<T: Real> Default for Tape<T> {
@@ -191,6 +192,7 @@ impl<T: Real> Tape<T> {
             anomaly: Cell::new(false),
             fusing: Cell::new(0),
             fuse_chunk: Cell::new(DEFAULT_CHUNK),
+            fuse_backward: Cell::new(FusedBackward::Auto),
         }
     }
 
@@ -450,6 +452,14 @@ impl<T: Real> Tape<T> {
         self.fuse_chunk.set(elems.max(1));
     }
 
+    /// How the fused ops materialised from now on prepare their backward (default
+    /// [`FusedBackward::Auto`]: preaccumulate the per-row Jacobian of ops with one output
+    /// channel and few inputs, recompute otherwise). Values do not depend on it; gradients
+    /// agree within the bound in the `fused` module docs.
+    pub fn set_fused_backward(&self, mode: FusedBackward) {
+        self.fuse_backward.set(mode);
+    }
+
     /// Computes the pending variables among `vars` together: one fused op for the graph
     /// behind all of them (shared intermediates computed once). Others are left as they are.
     pub fn materialize(&self, vars: &[Var<'_, T>]) {
@@ -627,15 +637,21 @@ impl<T: Real> Tape<T> {
                 .iter()
                 .map(|&i| inner.slots[i as usize].value.shape().to_vec())
                 .collect();
+            let ext_rg = ext_ids
+                .iter()
+                .map(|&i| inner.slots[i as usize].requires_grad)
+                .collect();
             let dag = Dag {
                 nodes,
                 ext_shapes,
+                ext_rg,
                 data,
                 targets: targets.iter().map(|t| index[t]).collect(),
             };
             (dag, ext_ids, seen)
         };
-        match crate::fused::plan(dag, self.fuse_chunk.get(), self.anomaly.get()) {
+        let mode = self.fuse_backward.get();
+        match crate::fused::plan(dag, self.fuse_chunk.get(), self.anomaly.get(), mode) {
             Some(op) => self.record_into(op, &ext_ids, &targets),
             None if targets.len() > 1 => self.materialize_groups(&targets),
             None => {

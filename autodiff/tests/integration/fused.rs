@@ -13,6 +13,7 @@
 //! fused op is recorded when it is materialised, so a shared input may receive them in another
 //! order than eager: the difference is rounding of the terms' size (see the `Normalize` step).
 
+use autodiff::fused::FusedBackward;
 use autodiff::gradcheck::{gradcheck, GradcheckOptions};
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::rng::Rng;
@@ -143,9 +144,32 @@ struct Run<T: Real> {
 }
 
 fn run<T: Real>(xs: &[Tensor<T>], prog: &[Step], fused: bool, chunk: usize) -> Run<T> {
+    run_with(xs, prog, fused, chunk, FusedBackward::Auto, false)
+}
+
+/// [`run`] with the fused ops' backward strategy, and with the row-invariant inputs as
+/// constants when `const_inv` (so that preaccumulation applies to every fused op).
+fn run_with<T: Real>(
+    xs: &[Tensor<T>],
+    prog: &[Step],
+    fused: bool,
+    chunk: usize,
+    mode: FusedBackward,
+    const_inv: bool,
+) -> Run<T> {
     let tape = Tape::<T>::new();
     tape.set_fused_chunk(chunk);
-    let leaves: Vec<Var<'_, T>> = xs.iter().map(|x| tape.leaf(x.clone())).collect();
+    tape.set_fused_backward(mode);
+    let leaves: Vec<Var<'_, T>> = xs
+        .iter()
+        .map(|x| {
+            if const_inv && x.shape().first() != Some(&N) {
+                tape.constant(x.clone())
+            } else {
+                tape.leaf(x.clone())
+            }
+        })
+        .collect();
     let body = || {
         let mut vars = leaves.clone();
         for st in prog {
@@ -211,6 +235,27 @@ fn compare<T: Real>(a: &Run<T>, b: &Run<T>, rtol: f64, row_bits: bool) {
     }
 }
 
+/// Preaccumulated against eager: values bit for bit; gradients within
+/// `rtol * (1 + max(|u|, |v|))` (see [`preaccumulated_random_graphs_match_eager`]), NaN where
+/// eager has NaN.
+fn compare_preaccumulated<T: Real>(pre: &Run<T>, eager: &Run<T>, rtol: f64) {
+    for (x, y) in pre.values.iter().zip(&eager.values) {
+        same_bits(x, y, "values");
+    }
+    for (k, (x, y)) in pre.grads.iter().zip(&eager.grads).enumerate() {
+        for (&u, &v) in x.iter().zip(y.iter()) {
+            let (u, v) = (u.to_f64c(), v.to_f64c());
+            assert!(
+                u.to_bits() == v.to_bits()
+                    || (u.is_nan() && v.is_nan())
+                    || (u - v).abs() <= rtol * (1.0 + u.abs().max(v.abs())),
+                "gradient of input {k} ({}): {u} vs {v}",
+                T::NAME
+            );
+        }
+    }
+}
+
 fn step() -> impl Strategy<Value = Step> {
     prop_oneof![
         (any::<u8>(), any::<usize>()).prop_map(|(k, i)| Step::Unary(k, i)),
@@ -232,6 +277,38 @@ proptest! {
         compare(&run(&x64, &prog, true, 1024), &run(&x64, &prog, false, 1024), 1e-15, false);
         let x32 = inputs::<f32>(seed);
         compare(&run(&x32, &prog, true, 1024), &run(&x32, &prog, false, 1024), 1e-6, false);
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
+
+    /// Random graphs with the row-invariant inputs as constants, every fused op preaccumulated
+    /// (up to 3 outputs of up to 3 channels: several sweeps per chunk): values equal eager's
+    /// bit for bit. Gradients differ from eager's by the rounding of `g * (d_L * ... * d_1)`
+    /// against eager's `((g * d_L) * ...) * d_1` along each path and of `sum_o g_o J_o`
+    /// against eager's one sweep: a few ulp of the largest adjoint inside the graph, which
+    /// `normalize` near a zero vector makes up to `1 / eps` = 1e3 times `|g|` (its gradient
+    /// `g / max(len, eps)` and the projection that cancels it). Held to `16 u / eps` of
+    /// `1 + |g|` (`u` the unit roundoff).
+    #[test]
+    fn preaccumulated_random_graphs_match_eager(
+        prog in prop::collection::vec(step(), 1..14),
+        seed in 0u64..1000,
+    ) {
+        let pre = FusedBackward::Preaccumulate;
+        let x64 = inputs::<f64>(seed);
+        compare_preaccumulated(
+            &run_with(&x64, &prog, true, 1024, pre, true),
+            &run_with(&x64, &prog, false, 1024, pre, true),
+            16.0 * f64::EPSILON / 2.0 * 1e3,
+        );
+        let x32 = inputs::<f32>(seed);
+        compare_preaccumulated(
+            &run_with(&x32, &prog, true, 1024, pre, true),
+            &run_with(&x32, &prog, false, 1024, pre, true),
+            16.0 * f64::from(f32::EPSILON) / 2.0 * 1e3,
+        );
     }
 }
 
@@ -276,32 +353,34 @@ fn shader_graph_matches_eager_in_f64_and_f32() {
     );
 }
 
+/// The 50-op chain of the benchmark (`x * 1.01`, `x + 0.5`, `sin`, `tanh`, `x * x`, ten times).
+fn chain50<'t, T: Real>(x: Var<'t, T>) -> Var<'t, T> {
+    let mut h = x;
+    for i in 0..50 {
+        h = match i % 5 {
+            0 => h * T::from_f64c(1.01),
+            1 => h + T::from_f64c(0.5),
+            2 => h.sin(),
+            3 => h.tanh(),
+            _ => h * h,
+        };
+    }
+    h
+}
+
 /// The 50-op chain of the benchmark, 1-D (one element per row), bit for bit in f32 (the
 /// vectorised sin/tanh kernels) and f64.
 #[test]
 fn chain_is_bit_identical() {
-    fn chain<'t, T: Real>(x: Var<'t, T>) -> Var<'t, T> {
-        let mut h = x;
-        for i in 0..50 {
-            h = match i % 5 {
-                0 => h * T::from_f64c(1.01),
-                1 => h + T::from_f64c(0.5),
-                2 => h.sin(),
-                3 => h.tanh(),
-                _ => h * h,
-            };
-        }
-        h
-    }
     fn go<T: Real>(fused: bool) -> (Vec<u64>, Vec<u64>) {
         let mut x0: Tensor<T> = Rng::new(3).normal_tensor(&[70_001]);
         x0[[5]] = T::from_f64c(1e5); // outside the f32 polynomial range
         let tape = Tape::<T>::new();
         let x = tape.leaf(x0);
         let y = if fused {
-            tape.fused(|| chain(x))
+            tape.fused(|| chain50(x))
         } else {
-            chain(x)
+            chain50(x)
         };
         assert_eq!(y.is_pending(), fused);
         let loss = y.sum();
@@ -313,6 +392,49 @@ fn chain_is_bit_identical() {
     }
     assert_eq!(go::<f32>(true), go::<f32>(false));
     assert_eq!(go::<f64>(true), go::<f64>(false));
+}
+
+/// The chain with a random output gradient `g` (the default strategy preaccumulates it): the
+/// values bit for bit; the gradient `g * (d_50 * ... * d_1)` against eager's
+/// `((g * d_50) * ...) * d_1` with the same factors `d_k`: each within `(1 + u)^51` of the
+/// exact product, so within `102 u` of eager's relative to it (u the unit roundoff).
+#[test]
+fn chain_with_any_output_gradient_is_within_the_bound() {
+    fn go<T: Real>(fused: bool) -> (Vec<u64>, Vec<f64>) {
+        let x0: Tensor<T> = Rng::new(3).normal_tensor(&[20_001]);
+        let w0: Tensor<T> = Rng::new(4).normal_tensor(&[20_001]);
+        let tape = Tape::<T>::new();
+        let x = tape.leaf(x0);
+        let w = tape.constant(w0);
+        let y = if fused {
+            tape.fused(|| chain50(x))
+        } else {
+            chain50(x)
+        };
+        let g = tape.backward((y * w).sum()).unwrap();
+        let g = g.get(x).unwrap().iter().map(|v| v.to_f64c()).collect();
+        (bits(&y.value().unwrap()), g)
+    }
+    fn check<T: Real>() {
+        let (fused, eager) = (go::<T>(true), go::<T>(false));
+        assert_eq!(fused.0, eager.0, "values");
+        let u = T::EPS.to_f64c() / 2.0;
+        let worst = fused
+            .1
+            .iter()
+            .zip(&eager.1)
+            .map(|(&a, &b)| {
+                if a == b {
+                    0.0
+                } else {
+                    (a - b).abs() / (b.abs() * u)
+                }
+            })
+            .fold(0.0, f64::max);
+        assert!(worst <= 102.0, "{}: {worst} u", T::NAME);
+    }
+    check::<f32>();
+    check::<f64>();
 }
 
 /// `tanh` over chunks whose arguments are all small, all large, mixed, and mixed with a NaN
@@ -349,28 +471,65 @@ fn tanh_paths_match_eager() {
 fn deterministic_across_threads_and_chunk_sizes() {
     let prog = shader_prog();
     let x = inputs::<f64>(4);
-    let in_pool = |n: usize, chunk: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(n)
-            .build()
-            .unwrap()
-            .install(|| run(&x, &prog, true, chunk))
-    };
+    let go = |n: usize, chunk: usize| in_pool(n, || run(&x, &prog, true, chunk));
     for chunk in [1, 7, 1024, 1 << 20] {
-        let one = in_pool(1, chunk);
+        let one = go(1, chunk);
         for n in [2, 3] {
-            let other = in_pool(n, chunk);
-            assert_eq!(
-                one.values.iter().map(bits).collect::<Vec<_>>(),
-                other.values.iter().map(bits).collect::<Vec<_>>()
-            );
-            assert_eq!(
-                one.grads.iter().map(bits).collect::<Vec<_>>(),
-                other.grads.iter().map(bits).collect::<Vec<_>>()
-            );
+            assert_eq!(all_bits(&one), all_bits(&go(n, chunk)));
         }
-        compare(&one, &in_pool(1, 1024), 1e-15, true);
+        compare(&one, &go(1, 1024), 1e-15, true);
     }
+}
+
+/// Runs `f` in a pool of `n` threads.
+fn in_pool<R: Send>(n: usize, f: impl FnOnce() -> R + Send) -> R {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(n)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
+/// The bits of a run's values and gradients.
+fn all_bits<T: Real>(r: &Run<T>) -> (Vec<Vec<u64>>, Vec<Vec<u64>>) {
+    (
+        r.values.iter().map(bits).collect(),
+        r.grads.iter().map(bits).collect(),
+    )
+}
+
+/// Preaccumulated fused ops (the shader graph with constant broadcast inputs: five output
+/// channels) give the same bits with 1, 2 and 3 threads and with every chunk size (each row's
+/// Jacobian comes from its own elements), and the values and gradients of a single-channel op
+/// equal eager's bit for bit when the output gradient is 1 (`sum`).
+#[test]
+fn preaccumulated_is_deterministic_across_threads_and_chunk_sizes() {
+    let prog = shader_prog();
+    let x = inputs::<f32>(4);
+    let pre = FusedBackward::Preaccumulate;
+    let go = |n: usize, chunk: usize| in_pool(n, || run_with(&x, &prog, true, chunk, pre, true));
+    let reference = all_bits(&go(1, 1024));
+    for chunk in [1, 7, 1024, 1 << 20] {
+        for n in [1, 2, 3] {
+            let got = all_bits(&go(n, chunk));
+            assert_eq!(got, reference, "{n} threads, chunk {chunk}");
+        }
+    }
+    // One output channel, seed 1: eager's sweep, bit for bit.
+    let go = |fused: bool| {
+        let tape = Tape::<f32>::new();
+        let a = tape.leaf(x[0].clone());
+        let b = tape.leaf(x[1].clone());
+        let body = || ((a * b).sin().sum_axes(&[-1], false) * 1.5).tanh();
+        let y = if fused { tape.fused(body) } else { body() };
+        let g = tape.backward(y.sum()).unwrap();
+        (
+            bits(&y.value().unwrap()),
+            bits(g.get(a).unwrap()),
+            bits(g.get(b).unwrap()),
+        )
+    };
+    assert_eq!(go(true), go(false));
 }
 
 #[test]
@@ -433,6 +592,37 @@ fn anomaly_names_the_op_inside_a_region() {
         unreachable!()
     };
     assert_eq!(op, "log");
+}
+
+/// Anomaly mode names the op inside a preaccumulated region (one input and one output
+/// channel, the default strategy picks preaccumulation) as the eager tape does: `sqrt(x * x)`
+/// at `x = 0` is finite forward and its backward infinite.
+#[test]
+fn anomaly_names_the_op_inside_a_preaccumulated_region() {
+    let report = |fused: bool| {
+        let tape = Tape::<f64>::new();
+        tape.set_detect_anomaly(true);
+        let mut x0: Tensor<f64> = Rng::new(2).normal_tensor(&[2000]);
+        x0[[1500]] = 0.0;
+        let x = tape.leaf(x0);
+        let body = || ((x * x).sqrt() * 3.0).tanh();
+        let y = if fused { tape.fused(body) } else { body() };
+        y.value().unwrap();
+        tape.backward(y.sum()).unwrap_err()
+    };
+    let eager = report(false);
+    assert_eq!(report(true), eager);
+    assert!(
+        matches!(
+            &eager,
+            AutodiffError::Anomaly {
+                op: "sqrt",
+                pass: Pass::Backward,
+                ..
+            }
+        ),
+        "{eager}"
+    );
 }
 
 /// An op the fuser does not handle (a matmul, a full sum, a reshape) computes the pending graph
