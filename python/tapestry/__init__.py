@@ -45,7 +45,8 @@ from ._tapestry import (  # noqa: F401  (re-exports)
     texture_vjp,
 )
 
-METHODS = ("hard", "tf_mesh", "opendr", "nmr", "softras", "dibr", "deodr")
+#: The raster methods of ``render`` (the library's registry, in its order).
+METHODS = _tapestry.METHODS
 
 
 def _settings(width, height, method, settings):
