@@ -18,7 +18,9 @@ use pyo3::types::PyDict;
 use render_ops::error::RenderError;
 use render_ops::raster::Fragments as RawFragments;
 use render_ops::scene::Method;
-use render_ops::shade::lights::{AmbientLight, DirectionalLight, Lights, Material, Reflectance};
+use render_ops::shade::lights::{
+    AmbientLight, DirectionalLight, Lights, Material, PointLight, Reflectance,
+};
 use render_ops::shade::phong::Surface;
 use render_ops::texture::{Filter, Sampler, Wrap};
 use render_ops::{MethodSettings, Rasterized};
@@ -739,7 +741,7 @@ fn shade_sh_vjp<'py>(
     })
 }
 
-const PHONG_INPUTS: [&str; 9] = [
+const PHONG_INPUTS: [&str; 11] = [
     "position",
     "normal",
     "albedo",
@@ -749,6 +751,8 @@ const PHONG_INPUTS: [&str; 9] = [
     "light_color",
     "ks",
     "shininess",
+    "point_position",
+    "point_color",
 ];
 
 fn reflectance(model: &str) -> PyResult<Reflectance> {
@@ -762,6 +766,13 @@ fn reflectance(model: &str) -> PyResult<Reflectance> {
     }
 }
 
+/// The rows `[3]` of a `[L, 3]` variable, one per light.
+fn light_rows<'t, T: Real>(x: Var<'t, T>) -> impl Iterator<Item = Var<'t, T>> {
+    (0..x.shape()[0]).map(move |l| x.slice(0, l, l + 1))
+}
+
+/// `render_ops::shade::shade` over the inputs of [`phong_inputs`]: the nine of
+/// `PHONG_INPUTS`, then the point lights' positions and colours when given.
 fn phong_build<T: Real>(model: Reflectance) -> Box<Build<T>> {
     Box::new(move |_, v| {
         let surface = Surface {
@@ -769,16 +780,19 @@ fn phong_build<T: Real>(model: Reflectance) -> Box<Build<T>> {
             normal: v[1],
             albedo: v[2],
         };
-        let nl = v[5].shape()[0];
         let lights = Lights {
             ambient: vec![AmbientLight { color: v[4] }],
-            directional: (0..nl)
-                .map(|l| DirectionalLight {
-                    direction: v[5].slice(0, l, l + 1),
-                    color: v[6].slice(0, l, l + 1),
-                })
+            directional: light_rows(v[5])
+                .zip(light_rows(v[6]))
+                .map(|(direction, color)| DirectionalLight { direction, color })
                 .collect(),
-            point: Vec::new(),
+            point: match v.get(9..11) {
+                Some(&[p, c]) => light_rows(p)
+                    .zip(light_rows(c))
+                    .map(|(position, color)| PointLight { position, color })
+                    .collect(),
+                _ => Vec::new(),
+            },
             sh: None,
         };
         let material = Material {
@@ -793,6 +807,8 @@ fn phong_build<T: Real>(model: Reflectance) -> Box<Build<T>> {
     })
 }
 
+/// The inputs of `shade_phong`, checked: the nine of `PHONG_INPUTS`, then `point_position`
+/// and `point_color` `[P, 3]` when given (both or neither).
 #[allow(clippy::too_many_arguments)]
 fn phong_inputs<T: Element + Real>(
     position: &Bound<'_, PyAny>,
@@ -804,6 +820,8 @@ fn phong_inputs<T: Element + Real>(
     light_color: &Bound<'_, PyAny>,
     ks: &Bound<'_, PyAny>,
     shininess: &Bound<'_, PyAny>,
+    point_position: Option<&Bound<'_, PyAny>>,
+    point_color: Option<&Bound<'_, PyAny>>,
 ) -> PyResult<Vec<Tensor<T>>> {
     let p = floats::<T>("position", position, &[None, Some(3)], "[N, 3]")?;
     let n = p.shape()[0];
@@ -830,15 +848,35 @@ fn phong_inputs<T: Element + Real>(
     )?;
     let k = floats::<T>("ks", ks, &[Some(3)], "[3]")?;
     let s = floats::<T>("shininess", shininess, &[Some(1)], "[1]")?;
-    Ok(vec![p, nrm, a, e, am, ld, lc, k, s])
+    let mut ins = vec![p, nrm, a, e, am, ld, lc, k, s];
+    match (point_position, point_color) {
+        (None, None) => {}
+        (Some(pp), Some(pc)) => {
+            let pp = floats::<T>("point_position", pp, &[None, Some(3)], "[P, 3]")?;
+            let pc = floats::<T>(
+                "point_color",
+                pc,
+                &[Some(pp.shape()[0]), Some(3)],
+                "[P, 3] (P of point_position)",
+            )?;
+            ins.extend([pp, pc]);
+        }
+        _ => {
+            return Err(PyValueError::new_err(
+                "point_position and point_color: give both or neither",
+            ))
+        }
+    }
+    Ok(ins)
 }
 
-/// shade_phong(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, model="lambert") -> [N, 3]
+/// shade_phong(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, model="lambert", point_position=None, point_color=None) -> [N, 3]
 /// The fused Lambert / Phong / Blinn-Phong model at fragments (positions, normals, albedo
-/// [N, 3]) seen from `eye` [3], lit by an ambient colour [3] and directional lights
-/// (directions and colours [L, 3]); `ks` [3] and `shininess` [1] for the specular models.
+/// [N, 3]) seen from `eye` [3], lit by an ambient colour [3], directional lights
+/// (directions and colours [L, 3], L may be 0) and point lights (positions and colours
+/// [P, 3], no distance fall-off); `ks` [3] and `shininess` [1] for the specular models.
 #[pyfunction]
-#[pyo3(signature = (position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, model = "lambert"))]
+#[pyo3(signature = (position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, model = "lambert", point_position = None, point_color = None))]
 #[allow(clippy::too_many_arguments)]
 fn shade_phong<'py>(
     py: Python<'py>,
@@ -852,20 +890,23 @@ fn shade_phong<'py>(
     ks: &Bound<'py, PyAny>,
     shininess: &Bound<'py, PyAny>,
     model: &str,
+    point_position: Option<&Bound<'py, PyAny>>,
+    point_color: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let m = reflectance(model)?;
     with_dtype!(dtype_of("position", position)?, T => {
-        let ins = phong_inputs::<T>(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess)?;
+        let ins = phong_inputs::<T>(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, point_position, point_color)?;
         let b = phong_build::<T>(m);
         let out = py.detach(|| forward(ins, &*b)).map_err(to_py)?;
         Ok(to_numpy(py, one(out)))
     })
 }
 
-/// shade_phong_vjp(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, grad_out, model="lambert", needs=None)
-/// -> gradients of the nine inputs, in order.
+/// shade_phong_vjp(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, grad_out, model="lambert", needs=None, point_position=None, point_color=None)
+/// -> the gradients of the nine inputs, in order, then of point_position and point_color
+/// when given (`needs`: one flag for each of these).
 #[pyfunction]
-#[pyo3(signature = (position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, grad_out, model = "lambert", needs = None))]
+#[pyo3(signature = (position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, grad_out, model = "lambert", needs = None, point_position = None, point_color = None))]
 #[allow(clippy::too_many_arguments)]
 fn shade_phong_vjp<'py>(
     py: Python<'py>,
@@ -881,11 +922,13 @@ fn shade_phong_vjp<'py>(
     grad_out: &Bound<'py, PyAny>,
     model: &str,
     needs: Option<Vec<bool>>,
+    point_position: Option<&Bound<'py, PyAny>>,
+    point_color: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Vec<Option<Bound<'py, PyAny>>>> {
     let m = reflectance(model)?;
-    let needs = needs_of(needs, 9, &PHONG_INPUTS.join(", "))?;
     with_dtype!(dtype_of("position", position)?, T => {
-        let ins = phong_inputs::<T>(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess)?;
+        let ins = phong_inputs::<T>(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess, point_position, point_color)?;
+        let needs = needs_of(needs, ins.len(), &PHONG_INPUTS[..ins.len()].join(", "))?;
         let g = floats::<T>("grad_out", grad_out, &[None, Some(3)], "[N, 3]")?;
         let b = phong_build::<T>(m);
         let gs = py.detach(|| vjp(ins, &needs, &*b, vec![g])).map_err(to_py)?;
@@ -955,6 +998,11 @@ fn _time_render<'py>(
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Fragments>()?;
+    // The raster methods of the registry (`render_ops::scene::Method::ALL`), in its order.
+    m.add(
+        "METHODS",
+        pyo3::types::PyTuple::new(m.py(), Method::ALL.map(|x| x.name()))?,
+    )?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
     m.add_function(wrap_pyfunction!(render_vjp, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize, m)?)?;

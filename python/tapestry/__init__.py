@@ -15,8 +15,9 @@ with respect to the op's differentiable inputs (``None`` where ``needs`` says Fa
 
 Arrays: float inputs are numpy ``float32`` or ``float64`` arrays (every float input of one
 call has the same dtype; other dtypes raise ``TypeError``), of any strides; each is copied
-once into Rust (the tape owns its values). Outputs are numpy arrays that own the Rust buffer
-(no copy). The GIL is released while Rust works. Library errors raise ``TapestryError`` (a
+once into Rust (the tape owns its values, so it cannot borrow numpy's memory: a memcpy for
+C-contiguous arrays, an element walk otherwise). Outputs have the inputs' dtype and are
+numpy arrays that own the Rust buffer (no copy). The GIL is released while Rust works. Library errors raise ``TapestryError`` (a
 ``ValueError``) with the command line's one-line message; shape errors raise ``ValueError``.
 
 Also ``fit_face`` (``tapestry fit-face`` in memory) and ``gradcheck`` / ``gradcheck_scene``
@@ -45,7 +46,8 @@ from ._tapestry import (  # noqa: F401  (re-exports)
     texture_vjp,
 )
 
-METHODS = ("hard", "tf_mesh", "opendr", "nmr", "softras", "dibr", "deodr")
+#: The raster methods of ``render`` (the library's registry, in its order).
+METHODS = _tapestry.METHODS
 
 
 def _settings(width, height, method, settings):

@@ -156,13 +156,17 @@ def shade_sh(normal, albedo, coeffs):
 
 _ShadePhong = _function(
     "ShadePhong",
-    lambda a, e: _tapestry.shade_phong(*a, e),
-    lambda a, g, e, needs: _tapestry.shade_phong_vjp(*a, g, e, needs),
+    lambda a, e: _tapestry.shade_phong(*a[:9], e, *a[9:]),
+    lambda a, g, e, needs: _tapestry.shade_phong_vjp(*a[:9], g, e, needs, *a[9:]),
 )
 
 
 def shade_phong(position, normal, albedo, eye, ambient, light_dir, light_color, ks, shininess,
-                model="lambert"):
-    """The Lambert / Phong / Blinn-Phong model [N, 3], differentiable in all nine inputs."""
+                model="lambert", point_position=None, point_color=None):
+    """The Lambert / Phong / Blinn-Phong model [N, 3], differentiable in all its inputs
+    (``point_position`` and ``point_color`` [P, 3]: point lights, both or neither)."""
+    points = tuple(x for x in (point_position, point_color) if x is not None)
+    if len(points) == 1:
+        raise ValueError("point_position and point_color: give both or neither")
     return _ShadePhong.apply(model, position, normal, albedo, eye, ambient, light_dir,
-                             light_color, ks, shininess)
+                             light_color, ks, shininess, *points)

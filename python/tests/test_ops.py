@@ -141,17 +141,61 @@ def test_shade_sh_vjp():
     fd_check(tapestry.shade_sh, tapestry.shade_sh_vjp, [n, alb, co], which=[0, 1, 2])
 
 
+def phong_inputs(seed, n=6):
+    """Fragments in front of the eye, two directional and two point lights."""
+    rng = np.random.default_rng(seed)
+    base = [rng.standard_normal((n, 3)), rng.standard_normal((n, 3)) + [0, 0, 3],
+            rng.uniform(size=(n, 3)), np.array([0.3, 0.2, 5.0]), np.array([0.1, 0.2, 0.1]),
+            np.array([[0.2, -0.1, -1.0], [-0.3, 0.4, -0.8]]), rng.uniform(size=(2, 3)),
+            np.array([0.5, 0.4, 0.3]), np.array([12.0])]
+    points = [np.array([[1.5, 2.0, 6.0], [-2.0, 0.5, 4.0]]), rng.uniform(size=(2, 3))]
+    return base, points
+
+
 @pytest.mark.parametrize("model", ["lambert", "phong", "blinn_phong"])
-def test_shade_phong_vjp(model):
-    rng = np.random.default_rng(8)
-    n = 6
-    ins = [rng.standard_normal((n, 3)), rng.standard_normal((n, 3)) + [0, 0, 3],
-           rng.uniform(size=(n, 3)), np.array([0.3, 0.2, 5.0]), np.array([0.1, 0.2, 0.1]),
-           np.array([[0.2, -0.1, -1.0], [-0.3, 0.4, -0.8]]), rng.uniform(size=(2, 3)),
-           np.array([0.5, 0.4, 0.3]), np.array([12.0])]
-    fd_check(lambda *a: tapestry.shade_phong(*a, model=model),
-             lambda *a: tapestry.shade_phong_vjp(*a[:9], a[9], model=model),
-             ins, which=range(9), rtol=1e-5)
+@pytest.mark.parametrize("with_points", [False, True])
+def test_shade_phong_vjp(model, with_points):
+    base, points = phong_inputs(8)
+    ins = base + points if with_points else base
+    k = len(ins)
+
+    def f(*a):
+        return tapestry.shade_phong(*a[:9], model=model, point_position=a[9] if k > 9 else None,
+                                    point_color=a[10] if k > 9 else None)
+
+    def vjp(*a):
+        return tapestry.shade_phong_vjp(*a[:9], a[k], model=model,
+                                        point_position=a[9] if k > 9 else None,
+                                        point_color=a[10] if k > 9 else None)
+
+    fd_check(f, vjp, ins, which=range(k), rtol=1e-5)
+
+
+def test_shade_phong_point_lights_lambert_reference():
+    """Point lights in numpy: albedo * (ambient + sum_l max(0, n . unit(p_l - x)) c_l)
+    (render_ops::shade::phong, no distance fall-off), without directional lights."""
+    (x, nrm, alb, eye, amb, _, _, ks, sh), (pp, pc) = phong_inputs(9)
+    none = np.zeros((0, 3))
+    got = tapestry.shade_phong(x, nrm, alb, eye, amb, none, none, ks, sh,
+                               point_position=pp, point_color=pc)
+    n = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+    want = alb * amb
+    for p, c in zip(pp, pc):
+        to = p - x
+        ndl = np.sum(n * to / np.linalg.norm(to, axis=1, keepdims=True), axis=1, keepdims=True)
+        want = want + alb * np.maximum(ndl, 0) * c
+    assert np.allclose(got, want, rtol=1e-12, atol=1e-12)
+    # The float32 path agrees.
+    got32 = tapestry.shade_phong(*(np.asarray(a, np.float32) for a in
+                                   (x, nrm, alb, eye, amb, none, none, ks, sh)),
+                                 point_position=pp.astype(np.float32),
+                                 point_color=pc.astype(np.float32))
+    assert got32.dtype == np.float32 and np.abs(got32 - want).max() < 1e-5
+    with pytest.raises(ValueError, match="point_position and point_color: give both"):
+        tapestry.shade_phong(x, nrm, alb, eye, amb, none, none, ks, sh, point_position=pp)
+    with pytest.raises(ValueError, match=r"point_color: shape \[1, 3\], expected \[P, 3\]"):
+        tapestry.shade_phong(x, nrm, alb, eye, amb, none, none, ks, sh, point_position=pp,
+                             point_color=pc[:1])
 
 
 def test_float32_matches_float64():

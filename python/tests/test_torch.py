@@ -54,6 +54,11 @@ def test_shading_and_texture_gradcheck():
            [[0.2, -0.1, -1.0]], [[0.9, 0.8, 0.7]], [0.5, 0.4, 0.3], [8.0]]
     assert torch.autograd.gradcheck(
         lambda *a: tt.shade_phong(*a, model="blinn_phong"), tuple(_t(np.array(x)) for x in ins))
+    points = [[[1.5, 2.0, 6.0]], [[0.6, 0.7, 0.8]]]
+    assert torch.autograd.gradcheck(
+        lambda *a: tt.shade_phong(*a[:9], model="phong", point_position=a[9],
+                                  point_color=a[10]),
+        tuple(_t(np.array(x)) for x in ins + points))
 
 
 def test_backward_in_a_training_step():
