@@ -225,9 +225,8 @@ fn face_geo(c: [[f64; 4]; 3], width: usize, height: usize, cull: bool) -> Option
     // in `f64`; such a face is dropped as degenerate.
     let (bx, by) = ([rect[0], rect[1] + 1], [rect[2], rect[3] + 1]);
     let bounded = bx.iter().all(|&x| {
-        by.iter().all(|&y| {
-            ((d[0] * x as f64).abs() + (d[1] * y as f64).abs() + d[2].abs()).is_finite()
-        })
+        by.iter()
+            .all(|&y| ((d[0] * x as f64).abs() + (d[1] * y as f64).abs() + d[2].abs()).is_finite())
     });
     if !bounded {
         return None;
