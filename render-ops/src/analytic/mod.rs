@@ -25,7 +25,13 @@
 //! barycentrics (`perspective_correct = false`), per-vertex colours and uv interpolated
 //! with them, and the NDC depth integrate exactly. Perspective-correct barycentrics and
 //! general shaders are evaluated at the centroid: a one-point rule, with error
-//! `O(|curvature of f| * diameter^2)` per fragment (docs/CONVENTIONS.md).
+//! `O(|curvature of f| * diameter^2)` per fragment (docs/CONVENTIONS.md). Measured on two
+//! intersecting icospheres at 16 x 16 against a 64 x 64-supersampled render shaded per
+//! sample: `sin(8 c)` of perspective-correct colours, mean error 3.8e-4, max 5.6e-3 (the raw
+//! colours: 2.4e-5 and 2.1e-3, the reference's own sampling error); see the test
+//! `centroid_rule_error_for_a_nonlinear_shader_under_perspective`. A face whose depth plane
+//! overflows `f64` over its pixel box (a vertex within ~1e-300 of the eye plane) is dropped as
+//! degenerate.
 //!
 //! # Backward
 //! Every piece vertex is the intersection of two lines (pixel sides, face edges, near/far
