@@ -10,7 +10,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use crate::error::RenderError;
-use crate::raster::Fragments;
+use crate::raster::{per_fragment, Fragments};
 use crate::rasterize::as_arrays;
 
 struct HardBlendOp<T: Real> {
@@ -233,32 +233,32 @@ impl<T: Real> Op<T> for WeightedBlendOp<T> {
         let g = ctx.grad_outputs[0].as_standard_layout();
         let gs = g.as_slice().expect("std");
         let bg: Vec<f64> = self.background.iter().map(|x| x.to_f64c()).collect();
-        let pixel_of = |i: usize| f.pixel_of(i);
-        let gcol = ctx.needs_grad[0].then(|| {
-            let mut gc = vec![T::zero(); n * c];
-            gc.par_chunks_mut(c.max(1)).enumerate().for_each(|(i, o)| {
-                if c == 0 {
-                    return;
+        // Per fragment: the colour gradient `w_i g_p` (C values) and the weight gradient
+        // `g_p[C] + (c_i - bg) . g_p` (one), in one walk over the fragments.
+        let (gc_on, gw_on) = (ctx.needs_grad[0], ctx.needs_grad[1]);
+        let g = per_fragment(f, c + 1, |i, p, o| {
+            let gp = &gs[p * (c + 1)..(p + 1) * (c + 1)];
+            let wi = ws[i].to_f64c();
+            let mut s = gp[c].to_f64c();
+            for ch in 0..c {
+                let gch = gp[ch].to_f64c();
+                o[ch] = wi * gch;
+                if gw_on {
+                    s += (cs[i * c + ch].to_f64c() - bg[ch]) * gch;
                 }
-                let p = pixel_of(i);
-                for ch in 0..c {
-                    o[ch] = T::from_f64c(ws[i].to_f64c() * gs[p * (c + 1) + ch].to_f64c());
-                }
-            });
-            ArrayD::from_shape_vec(IxDyn(&[n, c]), gc).expect("n c")
+            }
+            o[c] = s;
         });
-        let gw = ctx.needs_grad[1].then(|| {
-            let mut gw = vec![T::zero(); n];
-            gw.par_iter_mut().enumerate().for_each(|(i, o)| {
-                let p = pixel_of(i);
-                let gp = &gs[p * (c + 1)..(p + 1) * (c + 1)];
-                let mut s = gp[c].to_f64c();
-                for ch in 0..c {
-                    s += (cs[i * c + ch].to_f64c() - bg[ch]) * gp[ch].to_f64c();
-                }
-                *o = T::from_f64c(s);
-            });
-            ArrayD::from_shape_vec(IxDyn(&[n]), gw).expect("n")
+        let gcol = gc_on.then(|| {
+            let data = g
+                .chunks_exact(c + 1)
+                .flat_map(|o| o[..c].iter().map(|&x| T::from_f64c(x)))
+                .collect();
+            ArrayD::from_shape_vec(IxDyn(&[n, c]), data).expect("n c")
+        });
+        let gw = gw_on.then(|| {
+            let data = g.chunks_exact(c + 1).map(|o| T::from_f64c(o[c])).collect();
+            ArrayD::from_shape_vec(IxDyn(&[n]), data).expect("n")
         });
         Ok(vec![gcol, gw])
     }

@@ -186,6 +186,19 @@ impl Polys {
         (out, true)
     }
 
+    /// Whether every vertex of `p` lies outside the half-plane of line `h` or on its line
+    /// (within the on-line tolerance of [`Polys::clip`]): `p` keeps nothing of area there.
+    pub fn outside(&self, lines: &Lines, p: Poly, h: u32) -> bool {
+        let l = lines.val[h as usize];
+        self.vert[p.start as usize..(p.start + p.len) as usize]
+            .iter()
+            .all(|v| {
+                let d = l[0] * v[0] + l[1] * v[1] + l[2];
+                let scale = (l[0] * v[0]).abs() + (l[1] * v[1]).abs() + l[2].abs();
+                d <= ON_TOL * scale
+            })
+    }
+
     /// Merges vertices between (nearly) parallel lines in the polygon that starts at `start`
     /// and runs to the end of the arena; `None` (and the polygon removed) when fewer than
     /// three vertices or less than [`MIN_AREA`] remain.
@@ -329,12 +342,14 @@ fn intersect(a: &[f64; 3], b: &[f64; 3]) -> Option<[f64; 2]> {
     (p[0].is_finite() && p[1].is_finite()).then_some(p)
 }
 
-/// Whether two lines are (nearly) parallel: `|a0 b1 - a1 b0| <= tol |a_xy| |b_xy|`.
+/// Whether two lines are (nearly) parallel: `|a0 b1 - a1 b0| <= tol |a_xy| |b_xy|`, the
+/// norms the largest components (within `sqrt 2` of the Euclidean ones, and no `hypot` on the
+/// polygon clipper's hot path; no squares, which underflow for tiny lines).
 #[inline]
 fn parallel(a: &[f64; 3], b: &[f64; 3]) -> bool {
     let s = a[0] * b[1] - a[1] * b[0];
-    let na = a[0].hypot(a[1]);
-    let nb = b[0].hypot(b[1]);
+    let na = a[0].abs().max(a[1].abs());
+    let nb = b[0].abs().max(b[1].abs());
     !(s.abs() > PARALLEL_TOL * na * nb)
 }
 

@@ -60,6 +60,31 @@ pub struct Fragment<T> {
     pub dbary_dy: Option<[T; 3]>,
 }
 
+/// Runs `frag(i, p, out)` for every fragment `i` of pixel `p`, in parallel over fixed chunks
+/// of fragments (a pixel search per chunk, then a walk), each writing `per` values of the
+/// returned `[N, per]` buffer.
+pub(crate) fn per_fragment<T: Real, F>(f: &Fragments<T>, per: usize, frag: F) -> Vec<f64>
+where
+    F: Fn(usize, usize, &mut [f64]) + Sync,
+{
+    const CHUNK: usize = 2048;
+    let mut out = vec![0.0; f.len() * per];
+    out.par_chunks_mut(CHUNK * per)
+        .enumerate()
+        .for_each(|(blk, o)| {
+            let i0 = blk * CHUNK;
+            let mut p = f.pixel_of(i0);
+            for (j, v) in o.chunks_mut(per).enumerate() {
+                let i = i0 + j;
+                while f.offsets[p + 1] as usize <= i {
+                    p += 1;
+                }
+                frag(i, p, v);
+            }
+        });
+    out
+}
+
 /// Walks the pixels of a run of fragments in order: the pixel `p` of the current fragment,
 /// its row and column, and its centre in NDC (`x = (col + 0.5) sx - 1`, `y = 1 - (row + 0.5)
 /// sy`, the conventions' pixel centres), advancing through `offsets` without divisions.

@@ -81,7 +81,7 @@ mod hard;
 
 pub(crate) use clip::clip_plane;
 pub use direct::render_attributes_direct;
-pub(crate) use fragments::PixelCursor;
+pub(crate) use fragments::{per_fragment, PixelCursor};
 pub use fragments::{Fragment, Fragments};
 pub use hard::{rasterize_backward, rasterize_fragments};
 pub(crate) use hard::{FaceVjp, RunSetup, RunVjp};

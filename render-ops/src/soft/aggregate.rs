@@ -27,7 +27,7 @@ use rayon::prelude::*;
 use super::common::exp;
 use super::stage::SoftFragments;
 use crate::error::RenderError;
-use crate::raster::Fragments;
+use crate::raster::{per_fragment, Fragments};
 
 /// Settings of the SoftRas blend ([`softras_aggregate`]).
 #[derive(Clone, Debug, PartialEq)]
@@ -213,30 +213,6 @@ where
             for (col, px) in o.chunks_mut(per).enumerate() {
                 let p = row * w + col;
                 pixel(p, f.pixel_range(p), px);
-            }
-        });
-    out
-}
-
-/// Runs `frag(i, p, out)` for every fragment `i` of pixel `p`, in parallel over fixed chunks,
-/// each writing `per` values.
-fn per_fragment<T: Real, F>(f: &Fragments<T>, per: usize, frag: F) -> Vec<f64>
-where
-    F: Fn(usize, usize, &mut [f64]) + Sync,
-{
-    const CHUNK: usize = 2048;
-    let mut out = vec![0.0; f.len() * per];
-    out.par_chunks_mut(CHUNK * per)
-        .enumerate()
-        .for_each(|(blk, o)| {
-            let i0 = blk * CHUNK;
-            let mut p = f.pixel_of(i0);
-            for (j, v) in o.chunks_mut(per).enumerate() {
-                let i = i0 + j;
-                while f.offsets[p + 1] as usize <= i {
-                    p += 1;
-                }
-                frag(i, p, v);
             }
         });
     out
