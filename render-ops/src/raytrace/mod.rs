@@ -35,8 +35,10 @@
 //!   velocity of `u`, now a function of the occluder edge, the light, the receiver triangle and
 //!   the camera.
 //! * Shadow edges of area lights (secondary visibility, Li et al. section 5): per pixel sample,
-//!   `area_edge_samples` edges (by world length) that are silhouettes seen from the shading
-//!   point `x`; the ray from `x` through `p(s)` meets the light at `(a, b)`; the difference of
+//!   `area_edge_samples` edges that are silhouettes seen from the shading point `x`, drawn by
+//!   world length times 16 for the edges that cast a shadow from the light's centre or a
+//!   corner (a defensive mixture: every edge keeps a positive weight, so the estimate stays
+//!   unbiased); the ray from `x` through `p(s)` meets the light at `(a, b)`; the difference of
 //!   the light's estimator on the two sides of the curve in `(a, b)` times the curve's normal
 //!   velocity (a function of the edge, the light and `x`, whose motion on its receiver is
 //!   included) is the derivative of the light integral.
