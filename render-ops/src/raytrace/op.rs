@@ -556,7 +556,9 @@ impl<'a> Scene<'a> {
     fn primary_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
         let mut ctr = Counter::new(self.s.seed, Stream::PrimaryEdge, j as u64);
         let (e, pe) = edges.primary.sample(ctr.uniform());
-        let s = ctr.uniform();
+        // Uniform on the edge's part in front of the near plane (density 1 / (s1 - s0)).
+        let [s0, s1] = edges.primary_part[e as usize];
+        let s = s0 + ctr.uniform() * (s1 - s0);
         let edge = edges.list[e as usize];
         let (ca, cb) = (self.clip[edge.v[0] as usize], self.clip[edge.v[1] as usize]);
         let c: [f64; 4] = std::array::from_fn(|k| ca[k] + s * (cb[k] - ca[k]));
@@ -569,7 +571,7 @@ impl<'a> Scene<'a> {
         let Some((p, delta)) = self.two_sided(u, a, ctr) else {
             return;
         };
-        let scal = dot4(gimg[p], delta) / (self.s.primary_edge_samples as f64 * pe);
+        let scal = dot4(gimg[p], delta) * (s1 - s0) / (self.s.primary_edge_samples as f64 * pe);
         if scal == 0.0 || acc.clip.is_empty() {
             return;
         }
@@ -663,6 +665,18 @@ impl<'a> Scene<'a> {
     }
 }
 
+/// The part `[s0, s1]` of the clip-space segment from `a` to `b` in front of the near plane
+/// (`w > near`); `None` when no part is.
+fn near_part(a: [f64; 4], b: [f64; 4], near: f64) -> Option<[f64; 2]> {
+    let (wa, wb) = (a[3] - near, b[3] - near);
+    match (wa > 0.0, wb > 0.0) {
+        (true, true) => Some([0.0, 1.0]),
+        (false, false) => None,
+        (true, false) => Some([0.0, wa / (wa - wb)]),
+        (false, true) => Some([wa / (wa - wb), 1.0]),
+    }
+}
+
 fn dot4(a: [f64; 4], b: [f64; 4]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 }
@@ -689,8 +703,11 @@ pub(crate) fn bary_vjp(q: [V3; 3], d: V3, b: V3, gb: V3) -> [V3; 3] {
 /// The edge tables of one backward.
 struct Edges {
     list: Vec<Edge>,
-    /// Silhouette and boundary edges seen from the camera, by projected length (pixels).
+    /// Silhouette and boundary edges seen from the camera, by the projected length (pixels)
+    /// of their part in front of the near plane.
     primary: Cdf,
+    /// That part `[s0, s1]` of each edge (edge points `v0 + s (v1 - v0)`).
+    primary_part: Vec<[f64; 2]>,
     /// (light, edge) pairs of point and directional lights, silhouettes seen from the light,
     /// by world length; `shadow` samples indices into `shadow_items`.
     shadow: Cdf,
@@ -730,15 +747,18 @@ impl Edges {
     fn new(sc: &Scene<'_>) -> Self {
         let list = mesh_edges(&sc.world, sc.faces);
         let near = sc.s.near;
+        let mut primary_part = vec![[0.0; 2]; list.len()];
         let primary = Cdf::new(list.iter().enumerate().map(|(i, e)| {
             let (ca, cb) = (sc.clip[e.v[0] as usize], sc.clip[e.v[1] as usize]);
-            if ca[3] <= near
-                || cb[3] <= near
-                || !is_silhouette(e, &sc.q, sc.faces, Viewer::At([0.0; 3]))
-            {
+            let part = near_part(ca, cb, near);
+            let Some([s0, s1]) =
+                part.filter(|_| is_silhouette(e, &sc.q, sc.faces, Viewer::At([0.0; 3])))
+            else {
                 return (i as u32, 0.0);
-            }
-            let (ua, ub) = (sc.project(ca).0, sc.project(cb).0);
+            };
+            primary_part[i] = [s0, s1];
+            let at = |s: f64| std::array::from_fn(|k| ca[k] + s * (cb[k] - ca[k]));
+            let (ua, ub) = (sc.project(at(s0)).0, sc.project(at(s1)).0);
             (
                 i as u32,
                 ((ua[0] - ub[0]).powi(2) + (ua[1] - ub[1]).powi(2)).sqrt(),
@@ -792,6 +812,7 @@ impl Edges {
         Edges {
             list,
             primary,
+            primary_part,
             shadow,
             shadow_items,
             area,
