@@ -33,16 +33,20 @@ Images: RMSE between the two renderers' high-spp images against the RMSE between
 each (the Monte Carlo noise at that spp).
 
 Timings (the same run): forward+backward is the time of the gradient calls above (after one
-warm-up call; min and median over the seeds), forward that of --reps renders after a warm-up.
+warm-up call; min and median over the seeds), forward that of --reps renders after a warm-up;
+wall-clock and CPU time (user + system of all threads: robust on a shared machine).
 Tapestry: whole `tapestry render` / `tapestry grad --wrt positions` processes (f64, scene and
 OBJ parsing, output file); Mitsuba: in process, bench_mitsuba.py's protocol (float32; forward =
 params.update() (BVH rebuild) + render + copy to numpy; fwd+bwd adds dr.backward of L and
-reading the vertex gradient). Records go to OUT/compare.jsonl.
+reading the vertex gradient). Mitsuba's integrator: direct_projective with sppc = sppp = spp and
+sppi = spp for the lit scenes (shadow gradients), 0 for ico5k (bench_mitsuba.py's setting: no
+secondary visibility there). Records go to OUT/compare.jsonl.
 """
 import argparse
 import json
 import math
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -136,6 +140,16 @@ def tap_json(name, s, V, C, spp, seed, tag):
     return p
 
 
+def run_cpu(cmd):
+    """Runs cmd; returns (wall ms, CPU ms of the child: user + system, all threads)."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, env=ENV, stdout=subprocess.DEVNULL)
+    t1 = time.perf_counter()
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return 1e3 * (t1 - t0), 1e3 * (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime)
+
+
 def tap_render(js):
     npy = js[:-5] + ".npy"
     subprocess.run([a.tapestry, "render", js, "--out", js[:-5] + ".png", "--npy", npy],
@@ -143,20 +157,18 @@ def tap_render(js):
     return np.load(npy)[..., :3]
 
 
-def tap_grad(js, target_npy):
+def tap_grad(js, target_npy, times=None):
     g = js[:-5] + "_g.npy"
-    subprocess.run([a.tapestry, "grad", js, "--target", target_npy, "--wrt", "positions", "--out", g],
-                   check=True, env=ENV, stdout=subprocess.DEVNULL)
+    t = run_cpu([a.tapestry, "grad", js, "--target", target_npy, "--wrt", "positions", "--out", g])
+    if times is not None:
+        times.append(t)
     return np.load(g)
 
 
-def best_wall(cmd):
-    ts = []
-    for _ in range(a.reps):
-        t0 = time.perf_counter()
-        subprocess.run(cmd, check=True, env=ENV, stdout=subprocess.DEVNULL)
-        ts.append(time.perf_counter() - t0)
-    return 1e3 * min(ts), 1e3 * float(np.median(ts))
+def summary(ts):
+    """[min, median] of wall and of CPU times (ms)."""
+    w, c = np.array([t[0] for t in ts]), np.array([t[1] for t in ts])
+    return [float(w.min()), float(np.median(w))], [float(c.min()), float(np.median(c))]
 
 
 # ------------------------------------------------------------------------------------------
@@ -175,7 +187,8 @@ def mi_scene(s, spp):
     cam = s["camera"]
     d = {"type": "scene",
          "integrator": {"type": "direct_projective", "hide_emitters": True,
-                        "sppc": spp, "sppp": spp, "sppi": spp, "guiding": a.guiding},
+                        "sppc": spp, "sppp": spp, "sppi": spp if s["lights"] else 0,
+                        "guiding": a.guiding},
          "sensor": {"type": "perspective", "fov": float(cam["fov_y_deg"]), "fov_axis": "y",
                     "near_clip": float(cam.get("near", 0.1)), "far_clip": float(cam.get("far", 100)),
                     "to_world": mi.ScalarTransform4f().look_at(origin=cam["eye"], target=cam["at"],
@@ -298,15 +311,15 @@ def run(name, s):
     for who in ("tapestry", "mitsuba"):
         gs, ts = [], []
         for sd in range(0, a.seeds + 1):
-            t0 = time.perf_counter()
             if who == "tapestry":
-                gp = tap_grad(tap_json(name, s, s["V"], s["C"], a.spp, 100 + sd, "grad"), tnpy)
+                gp = tap_grad(tap_json(name, s, s["V"], s["C"], a.spp, 100 + sd, "grad"), tnpy, ts)
             else:
+                t0, c0 = time.perf_counter(), time.process_time()
                 gp = mir.grad(s["V"], Tm, 100 + sd)
-            ts.append(1e3 * (time.perf_counter() - t0))
+                ts.append((1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)))
             if sd > 0:
                 gs.append(J.T @ gp.ravel())
-        rec[f"{who}_fwd_bwd_ms"] = [min(ts[1:]), float(np.median(ts[1:]))]
+        rec[f"{who}_fwd_bwd_ms"], rec[f"{who}_fwd_bwd_cpu_ms"] = summary(ts[1:])
         rec[f"grad_{who}"] = [g.tolist() for g in gs]
         for rn, ref in refs.items():
             cr = np.array([compare(g, ref) for g in gs])
@@ -315,7 +328,8 @@ def run(name, s):
 
     # forward timings
     js = tap_json(name, s, s["V"], s["C"], a.spp, 0, "time")
-    rec["tapestry_forward_ms"] = best_wall([a.tapestry, "render", js, "--out", js[:-5] + ".png"])
+    ts = [run_cpu([a.tapestry, "render", js, "--out", js[:-5] + ".png"]) for _ in range(a.reps)]
+    rec["tapestry_forward_ms"], rec["tapestry_forward_cpu_ms"] = summary(ts)
     cnt2 = [1000]
 
     def mfwd():
@@ -325,12 +339,12 @@ def run(name, s):
     mfwd()
     ts = []
     for _ in range(a.reps):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         mfwd()
-        ts.append(1e3 * (time.perf_counter() - t0))
-    rec["mitsuba_forward_ms"] = [min(ts), float(np.median(ts))]
-    rec["mitsuba"] = "mitsuba %s / drjit %s, llvm_ad_rgb, direct_projective sppc=sppp=sppi=spp, guiding %s" % (
-        mi.__version__, dr.__version__, a.guiding)
+        ts.append((1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)))
+    rec["mitsuba_forward_ms"], rec["mitsuba_forward_cpu_ms"] = summary(ts)
+    rec["mitsuba"] = "mitsuba %s / drjit %s, llvm_ad_rgb, direct_projective sppc=sppp=spp, sppi=%s, guiding %s" % (
+        mi.__version__, dr.__version__, "spp" if s["lights"] else 0, a.guiding)
     rec["area_edge_samples"] = a.area_edge_samples
     return rec
 
@@ -343,7 +357,11 @@ with open(os.path.join(a.out, "compare.jsonl"), "a") as fh:
         fh.flush()
         f = lambda x: "%.0f" % x[0]  # noqa: E731
         print(f"{name}: forward tapestry {f(r['tapestry_forward_ms'])} ms / mitsuba {f(r['mitsuba_forward_ms'])} ms; "
-              f"fwd+bwd tapestry {f(r['tapestry_fwd_bwd_ms'])} ms / mitsuba {f(r['mitsuba_fwd_bwd_ms'])} ms (min)", flush=True)
+              f"fwd+bwd tapestry {f(r['tapestry_fwd_bwd_ms'])} ms / mitsuba {f(r['mitsuba_fwd_bwd_ms'])} ms (wall, min)",
+              flush=True)
+        print(f"  CPU: forward tapestry {f(r['tapestry_forward_cpu_ms'])} ms / mitsuba {f(r['mitsuba_forward_cpu_ms'])} ms; "
+              f"fwd+bwd tapestry {f(r['tapestry_fwd_bwd_cpu_ms'])} ms / mitsuba {f(r['mitsuba_fwd_bwd_cpu_ms'])} ms "
+              f"(user + system, all threads, min)", flush=True)
         print(f"  image RMSE tapestry-mitsuba {r['image_rmse_tapestry_vs_mitsuba']:.4f} "
               f"(noise alone: {r['image_rmse_noise_expected']:.4f}); means {r['image_mean_tapestry']:.4f} / "
               f"{r['image_mean_mitsuba']:.4f}", flush=True)

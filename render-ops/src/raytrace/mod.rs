@@ -45,9 +45,17 @@
 //!
 //! Gradients reach clip positions (primary hits and edges; hence the camera and vertex
 //! positions through the tape), world positions, normals and albedo at the hits, and every
-//! light row. Not differentiated: the eye position used for the view direction of specular
-//! terms (the camera's effect on highlights) and the camera's effect on the world shading
-//! point of secondary edges; edges crossing the near plane have no primary-edge term.
+//! light row. An edge crossing the near plane contributes its part in front of it (sampled on
+//! that part, weighted by its projected length).
+//!
+//! Not differentiated (left out, exactly): the eye position `RaytraceSettings::eye` is a
+//! constant, so (1) the view direction of Phong / Blinn-Phong highlights does not move with
+//! the camera (the specular term's gradient reaches the hit point, normal and albedo, but not
+//! the eye), and (2) the camera's effect on the world shading point of area-light edge terms
+//! is left out (the shading point's motion on its receiver is included); the primary hit
+//! itself moves with the camera through the clip positions. The image edge that the near
+//! plane cuts through a triangle (where the plane slices the mesh) has no edge term: it moves
+//! with the camera and the vertices but is not sampled.
 
 pub mod bvh;
 pub mod edges;
