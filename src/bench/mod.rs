@@ -258,10 +258,12 @@ impl MethodConfig {
 /// 1e-5} (gamma 1e-4), gamma in {1e-2, 1e-3} (sigma 1e-4) and the cut-off threshold 1e-2
 /// (default 1e-4); dibr delta in {3e-5, 1/7000, 3e-4} (Kaolin's recommended range); hard with
 /// K = 1 and 4 faces per pixel; tf_mesh, opendr and nmr with one; deodr with overdraw ramps of
-/// 0.5, 1 and 2 px; analytic with no parameter.
+/// 0.5, 1 and 2 px; analytic with no parameter; and the ray tracer of [`Method::RAY`] at 1, 4
+/// and 16 samples per pixel (its speed against gradient error; the textured scene is noted as
+/// not available to it, as to any method without a texture path).
 pub fn method_configs() -> Vec<MethodConfig> {
     let mut out = Vec::new();
-    for m in Method::ALL {
+    for m in Method::ALL.into_iter().chain(Method::RAY) {
         let mut r = Raster::with_method(m);
         match m {
             Method::Analytic => out.push(MethodConfig {
@@ -314,8 +316,6 @@ pub fn method_configs() -> Vec<MethodConfig> {
                     });
                 }
             }
-            // Not in `Method::ALL` (the ray tracer has no texture path for the textured
-            // scene yet); its sweep, for when it joins: samples per pixel.
             Method::Raytrace => {
                 for spp in [1, 4, 16] {
                     r.spp = spp;

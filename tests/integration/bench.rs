@@ -153,9 +153,16 @@ fn bench_command_writes_records_and_charts() {
             assert!(r["grad_rel_l2"].as_f64().unwrap() >= 0.0);
         }
     }
-    for m in ["hard", "tf_mesh", "opendr", "softras", "dibr"] {
+    for m in ["hard", "tf_mesh", "opendr", "softras", "dibr", "raytrace"] {
         assert!(methods.contains(m), "{m} missing: {methods:?}");
     }
+    // The ray tracer's speed against error at several sample counts.
+    let spps: std::collections::BTreeSet<u64> = records
+        .iter()
+        .filter(|r| r["kind"] == "accuracy" && r["method"] == "raytrace")
+        .map(|r| r["params"]["spp"].as_u64().unwrap())
+        .collect();
+    assert_eq!(spps, [1, 4, 16].into(), "{spps:?}");
     for kind in ["faces", "pixels", "threads"] {
         assert!(records.iter().any(|r| r["kind"] == kind), "{kind}");
     }

@@ -35,17 +35,27 @@
 //!   velocity of `u`, now a function of the occluder edge, the light, the receiver triangle and
 //!   the camera.
 //! * Shadow edges of area lights (secondary visibility, Li et al. section 5): per pixel sample,
-//!   `area_edge_samples` edges (by world length) that are silhouettes seen from the shading
-//!   point `x`; the ray from `x` through `p(s)` meets the light at `(a, b)`; the difference of
+//!   `area_edge_samples` edges that are silhouettes seen from the shading point `x`, drawn by
+//!   world length times 16 for the edges that cast a shadow from the light's centre or a
+//!   corner (a defensive mixture: every edge keeps a positive weight, so the estimate stays
+//!   unbiased); the ray from `x` through `p(s)` meets the light at `(a, b)`; the difference of
 //!   the light's estimator on the two sides of the curve in `(a, b)` times the curve's normal
 //!   velocity (a function of the edge, the light and `x`, whose motion on its receiver is
 //!   included) is the derivative of the light integral.
 //!
 //! Gradients reach clip positions (primary hits and edges; hence the camera and vertex
 //! positions through the tape), world positions, normals and albedo at the hits, and every
-//! light row. Not differentiated: the eye position used for the view direction of specular
-//! terms (the camera's effect on highlights) and the camera's effect on the world shading
-//! point of secondary edges; edges crossing the near plane have no primary-edge term.
+//! light row. An edge crossing the near plane contributes its part in front of it (sampled on
+//! that part, weighted by its projected length).
+//!
+//! Not differentiated (left out, exactly): the eye position `RaytraceSettings::eye` is a
+//! constant, so (1) the view direction of Phong / Blinn-Phong highlights does not move with
+//! the camera (the specular term's gradient reaches the hit point, normal and albedo, but not
+//! the eye), and (2) the camera's effect on the world shading point of area-light edge terms
+//! is left out (the shading point's motion on its receiver is included); the primary hit
+//! itself moves with the camera through the clip positions. The image edge that the near
+//! plane cuts through a triangle (where the plane slices the mesh) has no edge term: it moves
+//! with the camera and the vertices but is not sampled.
 
 pub mod bvh;
 pub mod edges;

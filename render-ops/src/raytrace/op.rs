@@ -7,6 +7,7 @@ use std::sync::Arc;
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
+use smallvec::SmallVec;
 
 use crate::error::RenderError;
 use crate::shade::{acc3, add3, cross3, dot3, scale3, sub3};
@@ -357,7 +358,7 @@ impl<'a> Scene<'a> {
         !bvh.occluded(&Ray::new(o, dir), 0.0, t_max)
     }
 
-    fn area_samples(&self, ctr: &mut Counter, n: usize) -> Vec<[f64; 2]> {
+    fn area_samples(&self, ctr: &mut Counter, n: usize) -> SmallVec<[[f64; 2]; 4]> {
         (0..n).map(|_| [ctr.uniform(), ctr.uniform()]).collect()
     }
 
@@ -459,7 +460,7 @@ impl<'a> Scene<'a> {
     /// Area-light edge terms of one pixel sample (module docs), into `acc`.
     fn area_edge_terms(&self, hit: &Surface, g: V3, edges: &Edges, index: u64, acc: &mut Acc) {
         let m = self.s.area_edge_samples;
-        if m == 0 || edges.all.is_empty() {
+        if m == 0 {
             return;
         }
         let lights = self.lights();
@@ -472,10 +473,14 @@ impl<'a> Scene<'a> {
             let one = LightSet::new(&[LightKind::Area], &self.light_rows[o..o + 4]).expect("4");
             let r = &self.light_rows;
             let quad = [r[o], add3(r[o], r[o + 1]), add3(r[o], r[o + 2])];
+            let cdf = &edges.area[area_k as usize];
             for j in 0..m {
+                if cdf.is_empty() {
+                    break;
+                }
                 let idx = (index * lights.n_area as u64 + area_k) * m as u64 + j as u64;
                 let mut ctr = Counter::new(self.s.seed, Stream::AreaEdge, idx);
-                let (e, pe) = edges.all.sample(ctr.uniform());
+                let (e, pe) = cdf.sample(ctr.uniform());
                 let s = ctr.uniform();
                 let edge = edges.list[e as usize];
                 if !is_silhouette(&edge, &self.world, self.faces, Viewer::At(hit.x)) {
@@ -551,7 +556,9 @@ impl<'a> Scene<'a> {
     fn primary_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
         let mut ctr = Counter::new(self.s.seed, Stream::PrimaryEdge, j as u64);
         let (e, pe) = edges.primary.sample(ctr.uniform());
-        let s = ctr.uniform();
+        // Uniform on the edge's part in front of the near plane (density 1 / (s1 - s0)).
+        let [s0, s1] = edges.primary_part[e as usize];
+        let s = s0 + ctr.uniform() * (s1 - s0);
         let edge = edges.list[e as usize];
         let (ca, cb) = (self.clip[edge.v[0] as usize], self.clip[edge.v[1] as usize]);
         let c: [f64; 4] = std::array::from_fn(|k| ca[k] + s * (cb[k] - ca[k]));
@@ -564,7 +571,7 @@ impl<'a> Scene<'a> {
         let Some((p, delta)) = self.two_sided(u, a, ctr) else {
             return;
         };
-        let scal = dot4(gimg[p], delta) / (self.s.primary_edge_samples as f64 * pe);
+        let scal = dot4(gimg[p], delta) * (s1 - s0) / (self.s.primary_edge_samples as f64 * pe);
         if scal == 0.0 || acc.clip.is_empty() {
             return;
         }
@@ -658,6 +665,18 @@ impl<'a> Scene<'a> {
     }
 }
 
+/// The part `[s0, s1]` of the clip-space segment from `a` to `b` in front of the near plane
+/// (`w > near`); `None` when no part is.
+fn near_part(a: [f64; 4], b: [f64; 4], near: f64) -> Option<[f64; 2]> {
+    let (wa, wb) = (a[3] - near, b[3] - near);
+    match (wa > 0.0, wb > 0.0) {
+        (true, true) => Some([0.0, 1.0]),
+        (false, false) => None,
+        (true, false) => Some([0.0, wa / (wa - wb)]),
+        (false, true) => Some([wa / (wa - wb), 1.0]),
+    }
+}
+
 fn dot4(a: [f64; 4], b: [f64; 4]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 }
@@ -684,29 +703,62 @@ pub(crate) fn bary_vjp(q: [V3; 3], d: V3, b: V3, gb: V3) -> [V3; 3] {
 /// The edge tables of one backward.
 struct Edges {
     list: Vec<Edge>,
-    /// Silhouette and boundary edges seen from the camera, by projected length (pixels).
+    /// Silhouette and boundary edges seen from the camera, by the projected length (pixels)
+    /// of their part in front of the near plane.
     primary: Cdf,
+    /// That part `[s0, s1]` of each edge (edge points `v0 + s (v1 - v0)`).
+    primary_part: Vec<[f64; 2]>,
     /// (light, edge) pairs of point and directional lights, silhouettes seen from the light,
     /// by world length; `shadow` samples indices into `shadow_items`.
     shadow: Cdf,
     shadow_items: Vec<(usize, u32)>,
-    /// Every edge by world length (area-light edges; the silhouette test is per point).
-    all: Cdf,
+    /// Per area light, every edge by world length, times [`AREA_EDGE_BOOST`] where
+    /// [`casts_shadow`] (the silhouette test is per shading point).
+    area: Vec<Cdf>,
+}
+
+/// Weight factor of the edges that [`casts_shadow`] finds casting a shadow from an area
+/// light. A defensive mixture (every edge keeps a positive weight, so the estimator stays
+/// unbiased; only its variance depends on the test): the ground plane's own boundary edges,
+/// long and never between a receiver and the light, no longer take most of the samples.
+const AREA_EDGE_BOOST: f64 = 16.0;
+
+/// Whether the ray from the centre or a corner of the area light `quad` (corner, edge_u,
+/// edge_v) through the edge point `p` travels on to a surface other than the edge's faces:
+/// the edge then casts a shadow edge somewhere (a heuristic for importance only).
+fn casts_shadow(bvh: &Bvh, e: &Edge, p: V3, quad: &[V3]) -> bool {
+    let n = cross3(quad[1], quad[2]);
+    [[0.5, 0.5], [0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
+        .iter()
+        .any(|ab| {
+            let l = add3(
+                quad[0],
+                add3(scale3(quad[1], ab[0]), scale3(quad[2], ab[1])),
+            );
+            let d = sub3(p, l);
+            dot3(n, d) > 0.0
+                && bvh
+                    .closest(&Ray::new(p, d), 1e-9, f64::INFINITY)
+                    .is_some_and(|h| !e.faces.contains(&h.face))
+        })
 }
 
 impl Edges {
     fn new(sc: &Scene<'_>) -> Self {
         let list = mesh_edges(&sc.world, sc.faces);
         let near = sc.s.near;
+        let mut primary_part = vec![[0.0; 2]; list.len()];
         let primary = Cdf::new(list.iter().enumerate().map(|(i, e)| {
             let (ca, cb) = (sc.clip[e.v[0] as usize], sc.clip[e.v[1] as usize]);
-            if ca[3] <= near
-                || cb[3] <= near
-                || !is_silhouette(e, &sc.q, sc.faces, Viewer::At([0.0; 3]))
-            {
+            let part = near_part(ca, cb, near);
+            let Some([s0, s1]) =
+                part.filter(|_| is_silhouette(e, &sc.q, sc.faces, Viewer::At([0.0; 3])))
+            else {
                 return (i as u32, 0.0);
-            }
-            let (ua, ub) = (sc.project(ca).0, sc.project(cb).0);
+            };
+            primary_part[i] = [s0, s1];
+            let at = |s: f64| std::array::from_fn(|k| ca[k] + s * (cb[k] - ca[k]));
+            let (ua, ub) = (sc.project(at(s0)).0, sc.project(at(s1)).0);
             (
                 i as u32,
                 ((ua[0] - ub[0]).powi(2) + (ua[1] - ub[1]).powi(2)).sqrt(),
@@ -733,20 +785,37 @@ impl Edges {
             }
         }
         let shadow = Cdf::new(weights.into_iter());
-        let all = if lights.n_area > 0 && sc.shadow.is_some() {
-            Cdf::new(list.iter().enumerate().map(|(i, e)| {
-                let d = sub3(sc.world[e.v[1] as usize], sc.world[e.v[0] as usize]);
-                (i as u32, dot3(d, d).sqrt())
-            }))
-        } else {
-            Cdf::default()
-        };
+        let mut area = Vec::new();
+        if let Some(bvh) = &sc.shadow {
+            for (li, kind) in sc.s.lights.iter().enumerate() {
+                if *kind == LightKind::Area {
+                    let quad = &sc.light_rows[lights.offsets[li]..lights.offsets[li] + 3];
+                    area.push(Cdf::new(
+                        list.par_iter()
+                            .enumerate()
+                            .map(|(i, e)| {
+                                let (a, b) = (sc.world[e.v[0] as usize], sc.world[e.v[1] as usize]);
+                                let d = sub3(b, a);
+                                let w = if casts_shadow(bvh, e, add3(a, scale3(d, 0.5)), quad) {
+                                    AREA_EDGE_BOOST
+                                } else {
+                                    1.0
+                                };
+                                (i as u32, w * dot3(d, d).sqrt())
+                            })
+                            .collect::<Vec<_>>()
+                            .into_iter(),
+                    ));
+                }
+            }
+        }
         Edges {
             list,
             primary,
+            primary_part,
             shadow,
             shadow_items,
-            all,
+            area,
         }
     }
 }
@@ -811,7 +880,7 @@ impl<T: Real> Op<T> for RaytraceOp {
             let per = n.div_ceil(chunks);
             (c * per).min(n)..((c + 1) * per).min(n)
         };
-        let area_edges = !edges.all.is_empty();
+        let area_edges = edges.area.iter().any(|c| !c.is_empty());
         let accs: Vec<Acc> = (0..chunks)
             .into_par_iter()
             .map(|c| {

@@ -12,6 +12,8 @@
 //! The gradient of a shading sample with respect to the light's rows (corner, edges,
 //! radiance) is that of this estimator at fixed `(a, b)`.
 
+use smallvec::SmallVec;
+
 use crate::scene::Shading;
 use crate::shade::sh::{sh_eval, sh_eval_vjp};
 use crate::shade::{
@@ -165,8 +167,8 @@ pub struct LightSet<'a> {
     pub kinds: &'a [LightKind],
     /// Parameter rows, `sum kinds.rows()` of them.
     pub rows: &'a [V3],
-    /// Where each light's rows start.
-    pub offsets: Vec<usize>,
+    /// Where each light's rows start (inline up to 8 lights: a set is built per sample).
+    pub offsets: SmallVec<[usize; 8]>,
     /// Number of area lights.
     pub n_area: usize,
 }
@@ -174,7 +176,7 @@ pub struct LightSet<'a> {
 impl<'a> LightSet<'a> {
     /// Lights of `kinds` with parameters `rows`; `None` when the row count does not fit.
     pub fn new(kinds: &'a [LightKind], rows: &'a [V3]) -> Option<Self> {
-        let mut offsets = Vec::with_capacity(kinds.len());
+        let mut offsets = SmallVec::new();
         let mut at = 0;
         for k in kinds {
             offsets.push(at);
