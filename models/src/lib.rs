@@ -25,5 +25,6 @@ pub mod morphable;
 
 pub use error::{ModelError, Result};
 pub use morphable::{
-    LandmarkPoint, LandmarkScheme, Morphable, MorphableParts, Region, RegionSplit, SurfacePoint,
+    LandmarkPoint, LandmarkScheme, Morphable, MorphableParts, PointShape, Region, RegionSplit,
+    SurfacePoint,
 };

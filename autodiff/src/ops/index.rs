@@ -41,6 +41,21 @@ impl<T: Real> Op<T> for IndexSelectOp {
                 ),
             ));
         }
+        if self.axis == 0 {
+            if let Some(xs) = x.as_slice() {
+                // Whole contiguous rows: one copy per row, no per-row views.
+                let row = xs.len().checked_div(n).unwrap_or(0);
+                let mut out = Vec::with_capacity(self.indices.len() * row);
+                for &i in &self.indices {
+                    out.extend_from_slice(&xs[i * row..(i + 1) * row]);
+                }
+                let mut shape = x.shape().to_vec();
+                shape[0] = self.indices.len();
+                return Ok(vec![
+                    ArrayD::from_shape_vec(IxDyn(&shape), out).expect("rows of the input")
+                ]);
+            }
+        }
         Ok(vec![into_standard(
             x.select(Axis(self.axis), &self.indices),
         )])
@@ -51,6 +66,19 @@ impl<T: Real> Op<T> for IndexSelectOp {
         }
         let ax = Axis(self.axis);
         let mut gx = ArrayD::<T>::zeros(ctx.inputs[0].raw_dim());
+        let g = ctx.grad_outputs[0];
+        if let (0, Some(gs)) = (self.axis, g.as_slice()) {
+            // Rows added in index order (the same order as the general path).
+            let n = gx.shape()[0];
+            let gxs = gx.as_slice_mut().expect("fresh");
+            let row = gxs.len().checked_div(n).unwrap_or(0);
+            for (&i, src) in self.indices.iter().zip(gs.chunks_exact(row.max(1))) {
+                for (d, &v) in gxs[i * row..(i + 1) * row].iter_mut().zip(src) {
+                    *d += v;
+                }
+            }
+            return Ok(vec![Some(gx)]);
+        }
         for (k, &i) in self.indices.iter().enumerate() {
             let src = ctx.grad_outputs[0].index_axis(ax, k);
             let mut dst = gx.index_axis_mut(ax, i);
@@ -207,5 +235,33 @@ impl<T: Real> Op<T> for ScatterAddOp {
             g[IxDyn(&at)]
         });
         Ok(vec![Some(gs)])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::tape::Tape;
+
+    /// The contiguous-row path of `index_select` (axis 0) against ndarray's `select` and the
+    /// general backward, on a 3-d tensor with repeated indices.
+    #[test]
+    fn index_select_rows_match_the_general_path() {
+        let x = ArrayD::from_shape_fn(IxDyn(&[5, 2, 3]), |i| (i[0] * 6 + i[1] * 3 + i[2]) as f64);
+        let idx = [4usize, 0, 4, 2];
+        let tape = Tape::<f64>::new();
+        let v = tape.leaf(x.clone());
+        let y = v.index_select(0, &idx);
+        assert_eq!(*y.value().unwrap(), x.select(Axis(0), &idx));
+        let w = ArrayD::from_shape_fn(IxDyn(&[4, 2, 3]), |i| (1 + i[0] + 10 * i[2]) as f64);
+        let loss = (y * tape.constant(w.clone())).sum();
+        let mut g = tape.backward(loss).unwrap();
+        let gx = g.take(v).unwrap();
+        let mut want = ArrayD::<f64>::zeros(IxDyn(&[5, 2, 3]));
+        for (k, &i) in idx.iter().enumerate() {
+            let mut d = want.index_axis_mut(Axis(0), i);
+            d += &w.index_axis(Axis(0), k);
+        }
+        assert_eq!(gx, want);
     }
 }

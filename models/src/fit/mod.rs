@@ -51,7 +51,7 @@ pub use landmarks::{
 pub use render::{Active, FaceRenderer, ParamVars, RenderOptions, FAR_MM, NEAR_MM};
 pub use synth::{euler_to_axis_angle, synthesize, SynthOptions, Synthetic};
 
-use crate::morphable::{LandmarkPoint, Morphable};
+use crate::morphable::{LandmarkPoint, Morphable, PointShape};
 
 /// `Y_00` of the SH basis (CONVENTIONS).
 pub const SH_Y00: f64 = 0.282095;
@@ -477,6 +477,8 @@ struct Eval {
 
 struct Problem<'a> {
     renderer: FaceRenderer<'a>,
+    /// The model at the target's landmark points.
+    points: PointShape<f64>,
     target: &'a FitTarget,
     target_px: std::sync::Arc<Tensor<f64>>,
     target_img: std::sync::Arc<Tensor<f64>>,
@@ -488,12 +490,9 @@ impl Problem<'_> {
         let tape = Tape::with_capacity(256);
         let v = self.renderer.vars(&tape, p, active);
         let w = &self.weights;
-        let world = self.renderer.posed(&v);
         let o = &self.renderer.options;
         let s = 0.5 * o.width.max(o.height) as f64;
-        let px = self
-            .renderer
-            .project_px(world, v.focal, &self.target.points)?;
+        let px = self.renderer.project_points_px(&self.points, &v)?;
         let y = tape.var_shared(self.target_px.clone(), false);
         let nl = self.target.points.len().max(1) as f64;
         let lmk = (px - y).square().sum() * (1.0 / (nl * s * s));
@@ -503,7 +502,7 @@ impl Problem<'_> {
         }
         let mut photo_term = None;
         if photo {
-            let img = self.renderer.image(world, &v)?;
+            let img = self.renderer.image(self.renderer.posed(&v), &v)?;
             let op = PhotoLossOp {
                 target: self.target_img.clone(),
                 eps: w.charbonnier_eps,
@@ -700,6 +699,7 @@ pub fn fit(
     let initial = initial_pose(model, target, w, h, focal);
     let init_seconds = t_init.elapsed().as_secs_f64();
     let problem = Problem {
+        points: model.at_points(&target.points)?,
         renderer,
         target,
         target_px: std::sync::Arc::new(target.landmarks.clone().into_dyn()),

@@ -31,7 +31,7 @@ use render_ops::shade::sh::sh_shade;
 use render_ops::transform::{axis_angle_to_matrix, perspective_clip, rigid_transform};
 
 use super::{FaceParams, FitError};
-use crate::morphable::{landmark_combination, LandmarkPoint, Morphable, RegionSplit};
+use crate::morphable::{landmark_combination, LandmarkPoint, Morphable, PointShape, RegionSplit};
 
 /// Near plane of the fitting camera, millimetres.
 pub const NEAR_MM: f64 = 50.0;
@@ -154,8 +154,19 @@ impl<'m> FaceRenderer<'m> {
 
     /// Posed (world = view space) vertex positions `[V, 3]`.
     pub fn posed<'t>(&self, v: &ParamVars<'t>) -> Var<'t, f64> {
-        let r = axis_angle_to_matrix(v.rotation);
-        rigid_transform(self.shape(v), r, v.translation)
+        pose(self.shape(v), v)
+    }
+
+    /// Pixel positions `[N, 2]` (as [`FaceRenderer::project_px`]) of the points of a
+    /// [`PointShape`] (the model at the landmark points): the landmark term without the other
+    /// vertices' shape.
+    pub fn project_points_px<'t>(
+        &self,
+        points: &PointShape<f64>,
+        v: &ParamVars<'t>,
+    ) -> Result<Var<'t, f64>, FitError> {
+        let shape = points.shape_standardized(v.rotation.tape(), v.z_id, v.z_exp);
+        self.project_rows(pose(shape, v), v.focal)
     }
 
     fn clip<'t>(&self, world: Var<'t, f64>, focal: Var<'t, f64>) -> Result<Var<'t, f64>, FitError> {
@@ -240,6 +251,11 @@ impl<'m> FaceRenderer<'m> {
         let px = self.project_px(world, v.focal, points)?.value()?;
         Ok(to2(&px))
     }
+}
+
+/// Model-space positions `[N, 3]` posed by `v`'s rotation and translation.
+fn pose<'t>(shape: Var<'t, f64>, v: &ParamVars<'t>) -> Var<'t, f64> {
+    rigid_transform(shape, axis_angle_to_matrix(v.rotation), v.translation)
 }
 
 /// Which parameter groups require gradients.
