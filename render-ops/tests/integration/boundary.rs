@@ -16,8 +16,8 @@ use autodiff::gradcheck::{gradcheck, GradcheckOptions, Mode};
 use autodiff::rng::Rng;
 use autodiff::{Real, Tape, Tensor, Var};
 use common::scenes::{
-    cosine, directions, fit_pose, flat, max_diff, moved, position_grad, positions_tensor, scene,
-    seam_sphere, silhouette_vertices, supersampled, temp_dir, toon_rim, Kind,
+    cosine, directions, fit_pose, flat, max_diff, moved, position_grad, positions_tensor, scalar,
+    scene, seam_sphere, silhouette_vertices, supersampled, temp_dir, toon_rim, Kind, ToonScene,
 };
 use common::{perspective_clip, smooth_colours, weights};
 use ndarray::{ArrayD, IxDyn};
@@ -353,20 +353,14 @@ fn texel_and_colour_gradients_are_exact() {
 /// silhouette is antialiased, and the rim vertices get position gradients.
 #[test]
 fn closure_shader_through_deodr() {
-    let cam = Camera::perspective_look_at(
-        [0.0, 0.2, 3.0],
-        [0.0; 3],
-        [0.0, 1.0, 0.0],
-        45f64.to_radians(),
-        1.0,
-        0.5,
-        10.0,
-    )
-    .unwrap();
-    let mesh = Mesh::<f64>::icosphere(2, 1.0);
-    let faces = Arc::new(mesh.faces.clone());
-    let size = 24;
-    let pos = positions_tensor(&mesh.positions);
+    let ToonScene {
+        cam,
+        mesh,
+        faces,
+        pos,
+        size,
+        wts,
+    } = ToonScene::new();
     #[allow(clippy::too_many_arguments)]
     fn render_toon<'t>(
         tape: &'t Tape<f64>,
@@ -393,8 +387,6 @@ fn closure_shader_through_deodr() {
             boundary::deodr_antialias(shaded, &r, clip, &BoundarySettings::default()).unwrap(),
         )
     }
-    let scalar = |x: f64| ArrayD::from_elem(IxDyn(&[1]), x);
-    let wts = ArrayD::from_shape_vec(IxDyn(&[size, size, 4]), weights(size * size * 4)).unwrap();
     let rep = gradcheck(
         |tape: &Tape<f64>, v| {
             let p = tape.constant(pos.clone());

@@ -15,8 +15,8 @@ use autodiff::gradcheck::{gradcheck, GradcheckOptions, Mode};
 use autodiff::rng::Rng;
 use autodiff::{Tape, Tensor, Var};
 use common::scenes::{
-    cosine, directions, fit_pose, flat, max_diff, moved, position_grad, positions_tensor, scene,
-    seam_sphere, silhouette_vertices, supersampled, temp_dir, toon_rim, Kind,
+    cosine, directions, fit_pose, flat, max_diff, moved, position_grad, positions_tensor, scalar,
+    scene, seam_sphere, silhouette_vertices, supersampled, temp_dir, toon_rim, Kind, ToonScene,
 };
 use common::{perspective_clip, smooth_colours, weights};
 use ndarray::{ArrayD, IxDyn};
@@ -434,20 +434,14 @@ fn texel_colour_and_light_gradients_are_exact() {
 /// differences), the silhouette is soft, and rim vertices get position gradients.
 #[test]
 fn closure_shader_through_softras_and_dibr() {
-    let cam = Camera::perspective_look_at(
-        [0.0, 0.2, 3.0],
-        [0.0; 3],
-        [0.0, 1.0, 0.0],
-        45f64.to_radians(),
-        1.0,
-        0.5,
-        10.0,
-    )
-    .unwrap();
-    let mesh = Mesh::<f64>::icosphere(2, 1.0);
-    let faces = Arc::new(mesh.faces.clone());
-    let size = 24;
-    let pos = positions_tensor(&mesh.positions);
+    let ToonScene {
+        cam,
+        mesh,
+        faces,
+        pos,
+        size,
+        wts,
+    } = ToonScene::new();
     fn render_toon<'t>(
         tape: &'t Tape<f64>,
         p: Var<'t, f64>,
@@ -478,8 +472,6 @@ fn closure_shader_through_softras_and_dibr() {
             render_fragments(clip, faces.clone(), &ms, &mut shader).unwrap()
         }
     }
-    let scalar = |x: f64| ArrayD::from_elem(IxDyn(&[1]), x);
-    let wts = ArrayD::from_shape_vec(IxDyn(&[size, size, 4]), weights(size * size * 4)).unwrap();
     for method in ["softras", "dibr"] {
         let rep = gradcheck(
             |tape: &Tape<f64>, v| {

@@ -3,10 +3,14 @@
 //! Phong-lit), supersampled hard renders and directional position gradients.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use autodiff::optim::Adam;
 use autodiff::{Tape, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
+
+use super::weights;
+use render_ops::camera::Camera;
 use render_ops::mesh::Mesh;
 use render_ops::obj::write_obj;
 use render_ops::pipeline::Wrt;
@@ -248,6 +252,51 @@ pub fn toon_rim<'t>(
     let ndv = (f.normal * f.view_dir).sum_axes(&[-1], true);
     let fresnel = (-ndv + 1.0).relu().powf(5.0) * 0.96 + 0.04;
     diffuse + fresnel * rim * vec3([0.3, 0.6, 1.0])
+}
+
+/// The closure-shader tests' scene: a level-2 icosphere seen from `[0, 0.2, 3]` (45 degree
+/// field of view) at `size` x `size`, and fixed loss weights over its RGBA image.
+pub struct ToonScene {
+    pub cam: Camera,
+    pub mesh: Mesh<f64>,
+    pub faces: Arc<Vec<[u32; 3]>>,
+    pub pos: Tensor<f64>,
+    pub size: usize,
+    pub wts: Tensor<f64>,
+}
+
+impl ToonScene {
+    pub fn new() -> Self {
+        let cam = Camera::perspective_look_at(
+            [0.0, 0.2, 3.0],
+            [0.0; 3],
+            [0.0, 1.0, 0.0],
+            45f64.to_radians(),
+            1.0,
+            0.5,
+            10.0,
+        )
+        .unwrap();
+        let mesh = Mesh::<f64>::icosphere(2, 1.0);
+        let faces = Arc::new(mesh.faces.clone());
+        let pos = positions_tensor(&mesh.positions);
+        let size = 24;
+        let wts =
+            ArrayD::from_shape_vec(IxDyn(&[size, size, 4]), weights(size * size * 4)).unwrap();
+        ToonScene {
+            cam,
+            mesh,
+            faces,
+            pos,
+            size,
+            wts,
+        }
+    }
+}
+
+/// A `[1]` tensor holding `x` (a shader parameter).
+pub fn scalar(x: f64) -> Tensor<f64> {
+    ArrayD::from_elem(IxDyn(&[1]), x)
 }
 
 /// The result of [`fit_pose`]: the loss before the first and after the last step, and the
