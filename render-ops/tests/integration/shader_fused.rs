@@ -7,10 +7,10 @@
 
 use std::sync::Arc;
 
+use crate::common::scenes::ToonScene;
 use autodiff::{Real, Tape, Tensor, Var};
 use ndarray::IxDyn;
 use render_ops::blend::blend_hard;
-use render_ops::camera::Camera;
 use render_ops::mesh::Mesh;
 use render_ops::raster::RasterSettings;
 use render_ops::rasterize::rasterize;
@@ -55,16 +55,7 @@ struct Out<T> {
 
 fn render<T: Real>(fused: bool, shader: Shader<T>) -> Out<T> {
     let mesh = Mesh::<f64>::icosphere(2, 1.0);
-    let cam = Camera::perspective_look_at(
-        [0.0, 0.2, 3.0],
-        [0.0; 3],
-        [0.0, 1.0, 0.0],
-        45f64.to_radians(),
-        1.0,
-        0.5,
-        10.0,
-    )
-    .unwrap();
+    let cam = ToonScene::camera();
     let faces = Arc::new(mesh.faces.clone());
     let tape = Tape::<T>::new();
     let pos = tape.leaf(

@@ -266,8 +266,9 @@ pub struct ToonScene {
 }
 
 impl ToonScene {
-    pub fn new() -> Self {
-        let cam = Camera::perspective_look_at(
+    /// The camera alone (for tests of other sizes or scalars).
+    pub fn camera() -> Camera {
+        Camera::perspective_look_at(
             [0.0, 0.2, 3.0],
             [0.0; 3],
             [0.0, 1.0, 0.0],
@@ -276,7 +277,11 @@ impl ToonScene {
             0.5,
             10.0,
         )
-        .unwrap();
+        .unwrap()
+    }
+
+    pub fn new() -> Self {
+        let cam = Self::camera();
         let mesh = Mesh::<f64>::icosphere(2, 1.0);
         let faces = Arc::new(mesh.faces.clone());
         let pos = positions_tensor(&mesh.positions);
