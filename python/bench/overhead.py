@@ -1,8 +1,9 @@
 """Overhead of the Python binding per call, on a 256x256 render (hard method, per-vertex
 colours, float32: the fused forward of `render_vertex_colors`), against the same library
-call timed inside Rust (`_time_render`: inputs already tensors, output kept in Rust).
+call timed inside Rust (`_time_render`: inputs already tensors, output kept in Rust), the two
+alternating call by call.
 
-    python python/bench/overhead.py [--repeats N] [--method M] [--subdiv S]
+    python python/bench/overhead.py [--repeats N] [--rounds R] [--method M] [--subdiv S]
 
 Build the extension in release (`pip install ./python`, or `maturin develop --release`) for
 numbers comparable with `tapestry bench`.
@@ -45,6 +46,7 @@ def icosphere(subdiv):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=200)
+    ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--method", default="hard")
     ap.add_argument("--subdiv", type=int, default=4)
     a = ap.parse_args()
@@ -55,19 +57,24 @@ def main():
     settings = dict(width=256, height=256, method=a.method)
     for _ in range(10):  # warm-up
         tapestry.render(clip, faces, colors, **settings)
+    # Each call timed alone, the two sides alternating call by call, so that both see the same
+    # load. The overhead is the median of the paired differences (a call from Python minus the
+    # Rust call just before it); the per-side minimum and median are printed beside it.
     rust, py = [], []
-    for _ in range(5):  # interleaved rounds, the best of each
-        rust.append(tapestry._tapestry._time_render(clip, faces, colors, dict(settings),
-                                                    a.repeats))
+    for _ in range(a.rounds * a.repeats):
+        rust += tapestry._tapestry._time_render(clip, faces, colors, dict(settings), 1)
         t0 = time.perf_counter()
-        for _ in range(a.repeats):
-            tapestry.render(clip, faces, colors, **settings)
-        py.append((time.perf_counter() - t0) / a.repeats)
-    r, p = min(rust), min(py)
-    print(f"256x256 {a.method}, {len(faces)} faces, float32, best of 5 x {a.repeats} calls")
-    print(f"rust library: {r * 1e3:.3f} ms/call")
-    print(f"python binding: {p * 1e3:.3f} ms/call")
-    print(f"overhead: {(p - r) * 1e6:.1f} us/call = {100 * (p - r) / r:.2f} %")
+        tapestry.render(clip, faces, colors, **settings)
+        py.append(time.perf_counter() - t0)
+    rust, py = np.array(rust), np.array(py)
+    print(f"256x256 {a.method}, {len(faces)} faces, float32, {len(py)} calls per side, "
+          "alternating")
+    for label, r, p in (("min", rust.min(), py.min()),
+                        ("median", np.median(rust), np.median(py))):
+        print(f"{label:6}: rust library {r * 1e3:.3f} ms, python binding {p * 1e3:.3f} ms")
+    d, r = np.median(py - rust), np.median(rust)
+    print(f"overhead (median of paired differences): {d * 1e6:.1f} us = {100 * d / r:.2f} % "
+          "of the median Rust call")
 
 
 if __name__ == "__main__":

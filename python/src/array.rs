@@ -120,6 +120,10 @@ pub fn floats<T: Element + Real>(
 }
 
 /// Triangles `[F, 3]` of any integer dtype as `u32` vertex indices (one copy).
+///
+/// C-contiguous `int64`, `int32` and `uint32` arrays (numpy's and torch's defaults) are read in
+/// place: one range check over the flat slice, then one converting copy. Any other integer
+/// dtype or layout goes through numpy's `ascontiguousarray(faces, "int64")` first.
 pub fn faces(obj: &Bound<'_, PyAny>) -> PyResult<Vec<[u32; 3]>> {
     let a = untyped("faces", obj)?;
     check_shape("faces", a.shape(), &[None, Some(3)], "[F, 3]")?;
@@ -130,26 +134,49 @@ pub fn faces(obj: &Bound<'_, PyAny>) -> PyResult<Vec<[u32; 3]>> {
             a.dtype()
         )));
     }
-    // Any integer dtype through C-contiguous int64 (numpy's own cast: no copy when it is
-    // already), then range-checked.
+    if let Some(t) = c_slice::<i64, _>(obj, triangles) {
+        return t;
+    }
+    if let Some(t) = c_slice::<i32, _>(obj, triangles) {
+        return t;
+    }
+    if let Some(t) = c_slice::<u32, _>(obj, |flat| {
+        Ok(flat.chunks_exact(3).map(|f| [f[0], f[1], f[2]]).collect())
+    }) {
+        return t;
+    }
     let np = obj.py().import("numpy")?;
     let i64s = np.call_method1("ascontiguousarray", (obj, "int64"))?;
     let arr = i64s.cast::<PyArrayDyn<i64>>()?.readonly();
-    let flat = arr.as_slice()?;
-    flat.chunks_exact(3)
-        .enumerate()
-        .map(|(i, f)| {
-            let mut t = [0u32; 3];
-            for (k, &x) in f.iter().enumerate() {
-                t[k] = u32::try_from(x).map_err(|_| {
-                    PyValueError::new_err(format!(
-                        "faces[{i}, {k}] = {x}: vertex indices must be in [0, 2^32)"
-                    ))
-                })?;
-            }
-            Ok(t)
-        })
-        .collect()
+    triangles(arr.as_slice()?)
+}
+
+/// `f` over the flat data of `obj` when it is a C-contiguous array of dtype `T`, read in place.
+fn c_slice<T: Element, R>(obj: &Bound<'_, PyAny>, f: impl FnOnce(&[T]) -> R) -> Option<R> {
+    let r = obj.cast::<PyArrayDyn<T>>().ok()?.try_readonly().ok()?;
+    if !r.is_c_contiguous() {
+        return None;
+    }
+    Some(f(r.as_slice().ok()?))
+}
+
+/// Flat signed indices as `u32` triangles: a branch-free range check over the whole slice (the
+/// indexed search runs only to name the first bad index), then the converting copy.
+fn triangles<I: Copy + Into<i64>>(flat: &[I]) -> PyResult<Vec<[u32; 3]>> {
+    let in_range = |x: I| (0..=i64::from(u32::MAX)).contains(&x.into());
+    if !flat.iter().fold(true, |ok, &x| ok & in_range(x)) {
+        let i = flat.iter().position(|&x| !in_range(x)).unwrap_or(0);
+        let x: i64 = flat[i].into();
+        return Err(PyValueError::new_err(format!(
+            "faces[{}, {}] = {x}: vertex indices must be in [0, 2^32)",
+            i / 3,
+            i % 3
+        )));
+    }
+    Ok(flat
+        .chunks_exact(3)
+        .map(|f| [f[0].into() as u32, f[1].into() as u32, f[2].into() as u32])
+        .collect())
 }
 
 /// An owned tensor moved into a numpy array (no copy).

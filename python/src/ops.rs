@@ -968,9 +968,9 @@ fn perspective_look_at<'py>(
     ))
 }
 
-/// _time_render(clip, faces, colors, settings, repeats) -> seconds per call
-/// The Rust-side time of `render` without the binding (inputs already tensors, outputs kept
-/// in Rust), for the overhead benchmark (python/bench/overhead.py).
+/// _time_render(clip, faces, colors, settings, repeats) -> [seconds of each call]
+/// The Rust-side time of each of `repeats` calls of `render` without the binding (inputs already
+/// tensors, outputs kept in Rust), for the overhead benchmark (python/bench/overhead.py).
 #[pyfunction]
 fn _time_render<'py>(
     py: Python<'py>,
@@ -979,19 +979,21 @@ fn _time_render<'py>(
     colors: &Bound<'py, PyAny>,
     settings: &Bound<'py, PyDict>,
     repeats: usize,
-) -> PyResult<f64> {
+) -> PyResult<Vec<f64>> {
     let mut s = method_settings(settings)?;
     let f = Arc::new(read_faces(faces)?);
     let c = floats::<f32>("clip", clip, &[None, Some(4)], "[V, 4]")?;
     let col = floats::<f32>("colors", colors, &[Some(c.shape()[0]), None], "[V, C]")?;
     fit_background(&mut s, col.shape()[1])?;
     let b = render_build::<f32>(f, s);
-    py.detach(|| -> Result<f64, String> {
-        let t0 = std::time::Instant::now();
-        for _ in 0..repeats.max(1) {
-            std::hint::black_box(forward(vec![c.clone(), col.clone()], &*b)?);
-        }
-        Ok(t0.elapsed().as_secs_f64() / repeats.max(1) as f64)
+    py.detach(|| -> Result<Vec<f64>, String> {
+        (0..repeats.max(1))
+            .map(|_| {
+                let t0 = std::time::Instant::now();
+                std::hint::black_box(forward(vec![c.clone(), col.clone()], &*b)?);
+                Ok(t0.elapsed().as_secs_f64())
+            })
+            .collect()
     })
     .map_err(to_py)
 }

@@ -111,3 +111,20 @@ def test_outputs_are_writable_numpy_arrays():
     img = tapestry.render(clip, faces, colors, width=W, height=H)
     assert isinstance(img, np.ndarray) and img.flags.writeable
     img[0, 0, 0] = 5.0
+
+
+def test_faces_of_every_integer_dtype_render_the_same():
+    # int64, int32 and uint32 (C-contiguous) are read in place; the others through numpy's cast.
+    clip, faces, colors = mesh()
+    want = tapestry.render(clip, faces, colors, width=W, height=H)
+    for dt in (np.int64, np.int32, np.uint32, np.uint64, np.int16, np.uint8):
+        got = tapestry.render(clip, faces.astype(dt), colors, width=W, height=H)
+        assert np.array_equal(got, want), dt
+    with pytest.raises(ValueError, match=r"faces\[1, 2\] = -3"):
+        bad = faces.astype(np.int32)
+        bad[1, 2] = -3
+        tapestry.render(clip, bad, colors, width=W, height=H)
+    with pytest.raises(ValueError, match=r"faces\[0, 0\] = 4294967296"):
+        bad = faces.astype(np.int64)
+        bad[0, 0] = 2 ** 32
+        tapestry.render(clip, bad, colors, width=W, height=H)
