@@ -9,17 +9,27 @@ use std::process::ExitCode;
 use render_ops::io::{read_image, write_npy};
 use render_ops::scene::Scene;
 
-use super::{CliError, WrtArg};
+use super::{timing, CliError, WrtArg};
 
-/// Computes the loss against `target`, prints it, and writes the gradient in the input's shape.
-pub fn run(scene: &Path, target: &Path, wrt: WrtArg, out: &Path) -> Result<ExitCode, CliError> {
+/// Computes the loss against `target`, prints it, and writes the gradient in the input's shape
+/// (`repeat`: [`timing::repeated`]).
+pub fn run(
+    scene: &Path,
+    target: &Path,
+    wrt: WrtArg,
+    out: &Path,
+    repeat: usize,
+) -> Result<ExitCode, CliError> {
     let scene = Scene::<f64>::load(scene)?;
     let target_img = read_image::<f64>(target)?;
-    let (loss, g) = scene.image_loss_grad(
-        target_img.into_dyn(),
-        &target.display().to_string(),
-        wrt.into(),
-    )?;
+    let target_img = target_img.into_dyn();
+    let (loss, g) = timing::repeated(repeat, || {
+        Ok(scene.image_loss_grad(
+            target_img.clone(),
+            &target.display().to_string(),
+            wrt.into(),
+        )?)
+    })?;
     println!("loss {loss:.17e}");
     write_npy(out, &g)?;
     Ok(ExitCode::SUCCESS)

@@ -7,6 +7,7 @@ mod grad;
 pub mod gradcheck;
 mod landmarks;
 mod render;
+mod timing;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -65,6 +66,10 @@ pub enum Command {
         /// Also write the float RGBA image [H, W, 4] as .npy.
         #[arg(long)]
         npy: Option<PathBuf>,
+        /// Render N more times in process and print their timings as one JSON line on stderr
+        /// (wall min and median, CPU per render; no start-up, parsing or file output).
+        #[arg(long, default_value_t = 0, value_name = "N")]
+        repeat: usize,
     },
     /// Gradient of L = sum (render - target)^2 with respect to a scene input, written as .npy.
     Grad {
@@ -79,6 +84,10 @@ pub enum Command {
         /// Output .npy in the input's shape.
         #[arg(long)]
         out: PathBuf,
+        /// Compute the gradient N more times in process and print their timings as one JSON
+        /// line on stderr (as `render --repeat`).
+        #[arg(long, default_value_t = 0, value_name = "N")]
+        repeat: usize,
     },
     /// Check gradients against finite differences: every registered case (autodiff ops,
     /// shading, texture, rasterization, each raster method), or the gradient of
@@ -240,13 +249,19 @@ impl From<crate::bench::BenchError> for CliError {
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
     match cli.command {
-        Command::Render { scene, out, npy } => render::run(&scene, &out, npy.as_deref()),
+        Command::Render {
+            scene,
+            out,
+            npy,
+            repeat,
+        } => render::run(&scene, &out, npy.as_deref(), repeat),
         Command::Grad {
             scene,
             target,
             wrt,
             out,
-        } => grad::run(&scene, &target, wrt, &out),
+            repeat,
+        } => grad::run(&scene, &target, wrt, &out, repeat),
         Command::Gradcheck {
             scene: Some(scene),
             wrt,
