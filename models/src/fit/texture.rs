@@ -8,9 +8,10 @@
 //! texture `[S, S, 3]` sampled bilinearly ([`TEXTURE_SAMPLER`], the texture op with its
 //! backward) at the interpolated uv and `E` the order-2 SH irradiance of the interpolated,
 //! normalised vertex normal (per-pixel shading, [`render_ops::shade::sh::sh_shade`]). Because
-//! the geometry is fixed, rasterization and interpolation run once
-//! ([`FaceRenderer::surface_samples`]); each step puts the texture on a fresh tape, samples,
-//! shades and evaluates
+//! the geometry and the light are fixed, rasterization, interpolation and the irradiance
+//! `E(n_p)` (`sh_shade` of a white albedo: the shading is linear in the albedo) run once
+//! ([`FaceRenderer::surface_samples`]); each step puts the texture on a fresh tape, samples
+//! it, multiplies by `E` and evaluates
 //!
 //! ```text
 //! E(A) = sum_p w_p rho(I_p - T_p) / (3 sum_p w_p)                       rho: Charbonnier
@@ -319,10 +320,10 @@ pub fn fit_texture(
     let uv = rows(&s.uv, 2);
     let normal = rows(&s.normal, 3);
     let weight = ArrayD::from_shape_fn(IxDyn(&[m, 1]), |j| keep[j[0]].1);
-    let target = Arc::new(ArrayD::from_shape_fn(IxDyn(&[m, 1, 3]), |j| {
+    let target = ArrayD::from_shape_fn(IxDyn(&[m, 1, 3]), |j| {
         let px = s.pixel[keep[j[0]].0];
         image[[px / w, px % w, j[2]]]
-    }));
+    });
     let sh = ArrayD::from_shape_vec(
         IxDyn(&[9, 3]),
         params.sh.iter().flatten().copied().collect(),
@@ -342,16 +343,16 @@ pub fn fit_texture(
         }
     };
 
-    let data = TextureData {
+    let data = TextureData::new(
         uv,
         normal,
         weight,
         target,
         sh,
-        prior: prior.clone(),
+        prior.clone(),
         chart,
-        options: o.clone(),
-    };
+        o.clone(),
+    )?;
     let mut texels = baked.texels.into_dyn();
     let mut adam = Adam::new(o.step);
     let mut losses = Vec::with_capacity(o.iters);
@@ -398,15 +399,14 @@ pub fn fit_texture(
 /// The fixed data of the stage's loss: the `M` pixels of textured faces.
 struct TextureData {
     /// Texture coordinates `[M, 2]`.
-    uv: Tensor<f64>,
-    /// Interpolated normals `[M, 3]`.
-    normal: Tensor<f64>,
+    uv: Arc<Tensor<f64>>,
+    /// SH irradiance `E(n_p)` `[M, 3]`: the shading of each pixel, fixed with the geometry
+    /// and the light (`sh_shade` of the normals with a white albedo).
+    irradiance: Arc<Tensor<f64>>,
     /// `w_p = n . v` `[M, 1]`.
-    weight: Tensor<f64>,
+    weight: Arc<Tensor<f64>>,
     /// The photo at the pixels `[M, 1, 3]`.
     target: Arc<Tensor<f64>>,
-    /// SH coefficients `[9, 3]`.
-    sh: Tensor<f64>,
     /// The prior texture `[S, S, 3]`.
     prior: Arc<Tensor<f64>>,
     /// Texels in the uv charts.
@@ -415,20 +415,43 @@ struct TextureData {
 }
 
 impl TextureData {
-    /// The loss of the module docs for texels `tex` `[S, S, 3]`.
+    /// The data of pixels with `uv` `[M, 2]`, `normal` `[M, 3]`, weight `[M, 1]`, photo
+    /// colours `target` `[M, 1, 3]`, lit by `sh` `[9, 3]`.
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        uv: Tensor<f64>,
+        normal: Tensor<f64>,
+        weight: Tensor<f64>,
+        target: Tensor<f64>,
+        sh: Tensor<f64>,
+        prior: Arc<Tensor<f64>>,
+        chart: Arc<Vec<bool>>,
+        options: TextureOptions,
+    ) -> Result<Self, FitError> {
+        let tape = Tape::new();
+        let white = tape.constant(ArrayD::from_elem(IxDyn(&[3]), 1.0));
+        let irradiance = sh_shade(tape.constant(normal), white, tape.constant(sh)).value()?;
+        Ok(TextureData {
+            uv: Arc::new(uv),
+            irradiance,
+            weight: Arc::new(weight),
+            target: Arc::new(target),
+            prior,
+            chart,
+            options,
+        })
+    }
+
+    /// The loss of the module docs for texels `tex` `[S, S, 3]`: the texture sampled at the
+    /// pixels, times their irradiance (`sh_shade` is linear in the albedo), against the photo.
     fn loss<'t>(&self, tex: Var<'t, f64>) -> Result<Var<'t, f64>, FitError> {
         let tape = tex.tape();
         let o = &self.options;
         let m = self.uv.shape()[0];
-        let a = sample(tex, tape.constant(self.uv.clone()), None, TEXTURE_SAMPLER);
-        let col = sh_shade(
-            tape.constant(self.normal.clone()),
-            a,
-            tape.constant(self.sh.clone()),
-        );
-        let weighted = tape
-            .concat(&[col, tape.constant(self.weight.clone())], 1)
-            .reshape(&[m, 1, 4]);
+        let c = |x: &Arc<Tensor<f64>>| tape.var_shared(x.clone(), false);
+        let a = sample(tex, c(&self.uv), None, TEXTURE_SAMPLER);
+        let col = a * c(&self.irradiance);
+        let weighted = tape.concat(&[col, c(&self.weight)], 1).reshape(&[m, 1, 4]);
         let data = tape.apply(
             PhotoLossOp::new(self.target.clone(), o.charbonnier_eps),
             &[weighted],
@@ -679,20 +702,21 @@ mod tests {
             s.index_axis_mut(ndarray::Axis(0), 0).fill(2.5);
             s
         };
-        let data = TextureData {
-            uv: rng.uniform_tensor(&[m, 2], 0.05, 0.95),
+        let data = TextureData::new(
+            rng.uniform_tensor(&[m, 2], 0.05, 0.95),
             normal,
-            weight: rng.uniform_tensor(&[m, 1], 0.1, 1.0),
-            target: Arc::new(rng.uniform_tensor(&[m, 1, 3], 0.0, 1.0)),
+            rng.uniform_tensor(&[m, 1], 0.1, 1.0),
+            rng.uniform_tensor(&[m, 1, 3], 0.0, 1.0),
             sh,
-            prior: Arc::new(rng.uniform_tensor(&[size, size, 3], 0.2, 0.8)),
-            chart: Arc::new((0..size * size).map(|i| i % 5 != 3).collect()),
-            options: TextureOptions {
+            Arc::new(rng.uniform_tensor(&[size, size, 3], 0.2, 0.8)),
+            Arc::new((0..size * size).map(|i| i % 5 != 3).collect()),
+            TextureOptions {
                 prior: 0.2,
                 smoothness: 0.3,
                 ..TextureOptions::default()
             },
-        };
+        )
+        .unwrap();
         let x: Tensor<f64> = rng.uniform_tensor(&[size, size, 3], 0.0, 1.0);
         let rep = gradcheck(
             |_t: &Tape<f64>, v| data.loss(v[0]).unwrap(),

@@ -194,3 +194,32 @@ fn textured_obj_mtl_png_round_trip() {
     );
     std::fs::remove_dir_all(dir).unwrap();
 }
+
+/// The stage gives the same texture bits with 1 and 3 rayon threads.
+#[test]
+fn texture_stage_is_deterministic_across_thread_counts() {
+    let (model, p) = scene();
+    let render = RenderOptions::new(64, 64);
+    let image = Array3::from_shape_fn((64, 64, 3), |(r, c, k)| {
+        0.3 + 0.4 * (((r * 5 + c * 3 + k) % 17) as f64 / 17.0)
+    });
+    let o = TextureOptions {
+        size: 32,
+        iters: 4,
+        ..TextureOptions::default()
+    };
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| fit::fit_texture(&model, &render, &p, &image, &o).unwrap())
+    };
+    let (a, b) = (run(1), run(3));
+    assert!(a
+        .texels
+        .iter()
+        .zip(b.texels.iter())
+        .all(|(x, y)| x.to_bits() == y.to_bits()));
+    assert_eq!(a.losses, b.losses);
+}
