@@ -321,9 +321,7 @@ impl<'m> FaceRenderer<'m> {
             let f = &r.fragments;
             let mut pixel = vec![0; f.face.len()];
             for (px, w) in f.offsets.windows(2).enumerate() {
-                for i in w[0] as usize..w[1] as usize {
-                    pixel[i] = px;
-                }
+                pixel[w[0] as usize..w[1] as usize].fill(px);
             }
             out = Some(SurfaceSamples {
                 pixel,

@@ -268,7 +268,10 @@ pub fn fit_texture(
         )));
     }
     let weights = [o.step, o.final_step_fraction, o.prior, o.smoothness];
-    if weights.iter().any(|v| !v.is_finite() || *v < 0.0) || !(o.charbonnier_eps > 0.0) {
+    if weights.iter().any(|v| !v.is_finite() || *v < 0.0)
+        || o.charbonnier_eps.is_nan()
+        || o.charbonnier_eps <= 0.0
+    {
         return Err(FitError::Invalid(format!(
             "texture stage: step, weights and eps must be finite and >= 0 (eps > 0): {o:?}"
         )));
@@ -738,8 +741,8 @@ mod tests {
         // Texel (row 12, col 2): centre (2.5, 12.5) = uv (2.5 / 16, 1 - 12.5 / 16).
         let (u, v) = (2.5 / 16.0, 1.0 - 12.5 / 16.0);
         let want = [1.0 - u - v, u, v];
-        for k in 0..3 {
-            assert!((b.texels[[12, 2, k]] - want[k]).abs() < 1e-12);
+        for (k, w) in want.iter().enumerate() {
+            assert!((b.texels[[12, 2, k]] - w).abs() < 1e-12);
         }
         assert!(b.chart[[12, 2]] && !b.chart[[0, 15]] && !b.chart[[1, 14]]);
         // Beyond the diagonal: four dilation rounds fill texels next to the triangle, the far
