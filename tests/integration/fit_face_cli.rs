@@ -49,9 +49,10 @@ fn read_points(p: &Path) -> Vec<[f64; 2]> {
         .collect()
 }
 
+/// `tapestry fit-face ARGS` with a 128 x 128 albedo texture (test time).
 fn fit_face(args: &[&std::ffi::OsStr]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_tapestry"))
-        .arg("fit-face")
+        .args(["fit-face", "--texture-size", "128"])
         .args(args)
         .output()
         .unwrap()
@@ -163,7 +164,7 @@ fn a_resized_photo_gives_every_output_in_its_own_pixels() {
     assert!(mtl.contains("map_Kd albedo.png"));
     // The albedo texture, fitted at the input's resolution, lowers the photometric RMSE
     // there below that of the model's per-vertex albedo.
-    assert_eq!(read("albedo.png").shape(), &[512, 512, 3]);
+    assert_eq!(read("albedo.png").shape(), &[128, 128, 3]);
     let t = &report["texture"];
     assert_eq!(
         (t["image_width"].as_u64(), t["image_height"].as_u64()),
@@ -394,6 +395,10 @@ fn bad_inputs_are_one_line_errors_and_write_nothing() {
         (
             vec!["--target".into(), s(&blank)],
             vec!["blank.png".into(), "no face found".into()],
+        ),
+        (
+            vec!["--texture-size".into(), "1".into()],
+            vec!["--texture-size 1".into(), "2 to 8192".into()],
         ),
     ];
     for (i, (args, needles)) in cases.iter().enumerate() {

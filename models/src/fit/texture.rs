@@ -29,7 +29,13 @@
 //! Texels that no pixel's bilinear footprint reaches get no update: they stay at the prior.
 //! Cast shadows are not modelled; the Charbonnier penalty keeps their pull on the texture
 //! bounded. Optimiser: Adam with a cosine step decay (as [`super::fit`]), the texels clamped
-//! to `[0, 1]` after each step.
+//! to `[0, 1]` after each step. The light is not refined (the albedo-light scale ambiguity is
+//! the model fit's to settle).
+//!
+//! Both shipped models have uvs (ICT's own; the MediaPipe mesh's canonical uvs, whose `v`
+//! runs down the face, so its `albedo.png` shows the face upside down while every OBJ viewer
+//! maps it right). A model without uvs is an error here, and `fit-face` skips the stage for
+//! it (`report.json`: `texture.skipped`), writing vertex colours instead.
 
 use std::sync::Arc;
 use std::time::Instant;
