@@ -223,3 +223,50 @@ fn texture_stage_is_deterministic_across_thread_counts() {
         .all(|(x, y)| x.to_bits() == y.to_bits()));
     assert_eq!(a.losses, b.losses);
 }
+
+/// Bad inputs are typed errors, and a face that covers no pixel leaves the texture at the
+/// prior.
+#[test]
+fn bad_inputs_are_errors_and_an_unseen_face_keeps_the_prior() {
+    let (model, p) = scene();
+    let render = RenderOptions::new(16, 16);
+    let img = Array3::from_elem((16, 16, 3), 0.5);
+    let o = TextureOptions {
+        size: 8,
+        iters: 2,
+        ..TextureOptions::default()
+    };
+    let err = |r: Result<fit::TextureFit, fit::FitError>| r.unwrap_err().to_string();
+    let e = err(fit::fit_texture(
+        &model,
+        &render,
+        &p,
+        &Array3::zeros((8, 16, 3)),
+        &o,
+    ));
+    assert!(e.contains("image"), "{e}");
+    let mut nan = img.clone();
+    nan[[3, 3, 1]] = f64::NAN;
+    assert!(err(fit::fit_texture(&model, &render, &p, &nan, &o)).contains("non-finite"));
+    let tiny = TextureOptions {
+        size: 1,
+        ..o.clone()
+    };
+    assert!(err(fit::fit_texture(&model, &render, &p, &img, &tiny)).contains("texture size"));
+    let neg = TextureOptions {
+        prior: -1.0,
+        ..o.clone()
+    };
+    assert!(err(fit::fit_texture(&model, &render, &p, &img, &neg)).contains("weights"));
+    let mut parts = model.to_parts();
+    parts.uvs = None;
+    let no_uv = Morphable::from_parts(parts).unwrap();
+    assert!(err(fit::fit_texture(&no_uv, &render, &p, &img, &o)).contains("no uvs"));
+    // Far to the side: nothing covered.
+    let mut away = p.clone();
+    away.translation[0] = 5000.0;
+    let r = fit::fit_texture(&model, &render, &away, &img, &o).unwrap();
+    assert_eq!(r.pixels, 0);
+    assert_eq!(r.texels, r.prior);
+    assert!(r.seen.iter().all(|&s| !s));
+}
