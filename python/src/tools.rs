@@ -74,6 +74,8 @@ fn _fit_face<'py>(
         seed,
         method,
         size,
+        texture_size: 512,
+        texture_iters: 30,
     };
     let fit = py
         .detach(|| fit_face::fit_face(&args, given).map_err(|e| e.to_string()))

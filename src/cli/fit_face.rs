@@ -44,7 +44,14 @@ pub struct Args {
     /// Image size of the synthetic target; photos larger than this are resized (area
     /// filter, aspect kept) so that their longer side is this.
     pub size: usize,
+    /// Side of the albedo texture of the detail stage, texels.
+    pub texture_size: usize,
+    /// Iterations of the detail stage (0: the model fit's albedo baked, not refined).
+    pub texture_iters: usize,
 }
+
+/// Longest side of the image the detail stage fits (the input, area-resized if larger).
+pub const TEXTURE_IMAGE_MAX: usize = 1024;
 
 /// 2D landmarks of the target photo, in the photo's own pixels (x right, y down, origin at
 /// the top-left corner, pixel centres at +0.5).
@@ -438,6 +445,12 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
     if args.iters == 0 {
         return Err(CliError::Message("--iters must be at least 1".into()));
     }
+    if !(2..=8192).contains(&args.texture_size) {
+        return Err(CliError::Message(format!(
+            "--texture-size {}: must be 2 to 8192 texels",
+            args.texture_size
+        )));
+    }
     let model = load_model(args)?;
     let prep = prepare(args, &model, given, start)?;
     let target = &prep.target;
@@ -484,17 +497,54 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
         .map(|r| r.landmark_error_px / mean_scale)
         .unwrap_or(lm_err);
 
-    // The fit drawn at the input's resolution (hard rasterization).
+    // The detail stage (models with uvs): a per-pixel albedo texture fitted at the input's
+    // resolution, at most TEXTURE_IMAGE_MAX pixels on the longer side.
+    let texture = if model.uvs().is_some() {
+        let f = (TEXTURE_IMAGE_MAX as f64 / wi.max(hi) as f64).min(1.0);
+        let (wt, ht) = (
+            ((wi as f64 * f).round() as usize).max(1),
+            ((hi as f64 * f).round() as usize).max(1),
+        );
+        let resized;
+        let timg = if (wt, ht) == (wi, hi) {
+            &prep.input
+        } else {
+            resized = resize_area(&prep.input, ht, wt);
+            &resized
+        };
+        let mut ro = RenderOptions::new(wt, ht);
+        ro.aspect = opts.render.aspect;
+        let to = fit::TextureOptions {
+            size: args.texture_size,
+            iters: args.texture_iters,
+            ..Default::default()
+        };
+        let t = rayon::scope(|_| fit::fit_texture(&model, &ro, &result.params, timg, &to))
+            .map_err(err)?;
+        Some((t, to))
+    } else {
+        None
+    };
+
+    // The fit drawn at the input's resolution (hard rasterization; textured when the detail
+    // stage ran).
     let mut full = RenderOptions::new(wi, hi);
     full.aspect = opts.render.aspect;
-    let full_img = if (wi, hi) == (w, h) && method == Method::Hard {
-        img.clone()
-    } else {
-        FaceRenderer::new(&model, full)
-            .map_err(err)?
-            .render(&result.params)
-            .map_err(err)?
-            .0
+    let full_img = match &texture {
+        Some((t, _)) if t.image.dim().0 == hi && t.image.dim().1 == wi => t.image.clone(),
+        Some((t, _)) => {
+            let r = FaceRenderer::new(&model, full).map_err(err)?;
+            let texels = t.texels.clone().into_dyn();
+            fit::render_textured(&r, &result.params, &texels, &t.textured).map_err(err)?
+        }
+        None if (wi, hi) == (w, h) && method == Method::Hard => img.clone(),
+        None => {
+            FaceRenderer::new(&model, full)
+                .map_err(err)?
+                .render(&result.params)
+                .map_err(err)?
+                .0
+        }
     };
     let pjson = params_json(&model, &result.params, method, [w, h], [wi, hi]);
     let mut outs = Outputs {
@@ -519,7 +569,12 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
             ),
         ],
     };
-    let (vertices, albedo) = mesh_outputs(&model, &result.params, &mut outs)?;
+    let (vertices, albedo) = mesh_outputs(
+        &model,
+        &result.params,
+        texture.as_ref().map(|t| &t.0),
+        &mut outs,
+    )?;
     let outputs_seconds = out_start.elapsed().as_secs_f64();
 
     let n1f = opts.landmark_iters.max(1) as f64;
@@ -551,6 +606,8 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
             {"stage": "stage2", "seconds": result.stage_seconds[1],
              "iterations": opts.full_iters, "landmark_error_px": lm_err,
              "photometric_rmse": rmse},
+            {"stage": "texture", "seconds": texture.as_ref().map(|t| t.0.seconds),
+             "photometric_rmse": texture.as_ref().map(|t| t.0.rmse_after)},
             {"stage": "outputs", "seconds": outputs_seconds},
         ],
         "width": w,
@@ -565,6 +622,19 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
         },
         "final_loss": result.history.last().map(|r| r.loss),
     });
+    report["texture"] = match &texture {
+        Some((t, o)) => json!({
+            "options": o,
+            "image_width": t.image.dim().1,
+            "image_height": t.image.dim().0,
+            "pixels": t.pixels,
+            "seen_texels": t.seen.iter().filter(|&&b| b).count(),
+            "photometric_rmse_before": t.rmse_before,
+            "photometric_rmse_after": t.rmse_after,
+            "seconds": t.seconds,
+        }),
+        None => json!({"skipped": "the model has no uvs"}),
+    };
     if let Some(truth) = &prep.truth {
         let true_shape = truth.shape(&model).map_err(err)?;
         let fit_shape = result.params.shape(&model).map_err(err)?;
@@ -634,6 +704,18 @@ fn write_fit(args: &Args, fit: FaceFit) -> Result<ExitCode, CliError> {
     println!("method: {method}");
     println!("landmark error: {lm_err:.3} px (initial {lm_err0:.2} px)");
     println!("photometric RMSE: {rmse:.4}");
+    let tex = &report["texture"];
+    if let (Some(a), Some(b)) = (
+        tex["photometric_rmse_before"].as_f64(),
+        tex["photometric_rmse_after"].as_f64(),
+    ) {
+        println!(
+            "albedo texture: photometric RMSE {a:.4} -> {b:.4} at {}x{} ({:.2} s)",
+            tex["image_width"],
+            tex["image_height"],
+            tex["seconds"].as_f64().unwrap_or(f64::NAN)
+        );
+    }
     if let Some(s) = report.get("shape_error_mm").and_then(|v| v.as_f64()) {
         println!(
             "shape error: {s:.3} mm (mean shape: {:.3} mm)",
@@ -663,168 +745,27 @@ fn points_text(p: &Array2<f64>) -> String {
         .collect()
 }
 
-/// Side of the baked albedo texture, pixels.
-const TEXTURE_SIZE: usize = 1024;
-
-/// `fit.obj` (the fitted shape in model space, millimetres), `fit.mtl` and, when the model has
-/// uvs, `albedo.png` (the per-vertex albedo baked into uv space); without uvs the OBJ carries
-/// the albedo as vertex colours.
+/// `fit.obj` (the fitted shape in model space, millimetres) and `fit.mtl` ([`fit::face_obj`]),
+/// and `albedo.png` when the model has uvs.
 fn mesh_outputs(
     model: &Morphable<f64>,
     p: &FaceParams,
+    texture: Option<&fit::TextureFit>,
     outs: &mut Outputs,
 ) -> Result<(Array2<f64>, Array2<f64>), CliError> {
     let shape = p.shape(model).map_err(err)?;
-    let gamma: Vec<f64> = p
-        .z_albedo
-        .iter()
-        .zip(model.sigma_albedo())
-        .map(|(z, s)| z * s)
-        .collect();
-    let albedo = model.eval_albedo(&gamma).map_err(err)?;
-    let mut obj = format!(
-        "# tapestry fit-face: the fitted {} in model space (millimetres, y up, facing +z)\nmtllib fit.mtl\n",
-        model.name()
-    );
-    let uvs = model.uvs();
-    for (i, v) in shape.rows().into_iter().enumerate() {
-        if uvs.is_some() {
-            obj += &format!("v {:.5} {:.5} {:.5}\n", v[0], v[1], v[2]);
-        } else {
-            let a = albedo.row(i);
-            obj += &format!(
-                "v {:.5} {:.5} {:.5} {:.4} {:.4} {:.4}\n",
-                v[0],
-                v[1],
-                v[2],
-                a[0].clamp(0.0, 1.0),
-                a[1].clamp(0.0, 1.0),
-                a[2].clamp(0.0, 1.0)
-            );
-        }
+    let albedo = p.albedo(model).map_err(err)?;
+    let textured = match texture {
+        Some(t) => t.textured.to_vec(),
+        None => vec![false; model.n_faces()],
+    };
+    let files = fit::face_obj(model, &shape, &albedo, &textured, "fit.mtl", "albedo.png");
+    if let Some(t) = texture {
+        outs.pngs.push(("albedo.png", t.texels.clone()));
     }
-    if let Some(uv) = uvs {
-        for t in uv.rows() {
-            obj += &format!("vt {:.6} {:.6}\n", t[0], t[1]);
-        }
-    }
-    obj += "usemtl face\n";
-    for f in model.faces() {
-        let [a, b, c] = f.map(|x| x + 1);
-        if uvs.is_some() {
-            obj += &format!("f {a}/{a} {b}/{b} {c}/{c}\n");
-        } else {
-            obj += &format!("f {a} {b} {c}\n");
-        }
-    }
-    let mut mtl =
-        String::from("# tapestry fit-face\nnewmtl face\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\n");
-    if let Some(uv) = uvs {
-        mtl += "map_Kd albedo.png\n";
-        let region_colour: Vec<Option<[f64; 3]>> = model
-            .face_regions()
-            .iter()
-            .map(|&r| model.regions()[r as usize].albedo)
-            .collect();
-        outs.pngs.push((
-            "albedo.png",
-            bake_albedo(uv, model.faces(), &albedo, &region_colour, TEXTURE_SIZE),
-        ));
-    }
-    outs.texts.push(("fit.obj", obj));
-    outs.texts.push(("fit.mtl", mtl));
+    outs.texts.push(("fit.obj", files.obj));
+    outs.texts.push(("fit.mtl", files.mtl));
     Ok((shape, albedo))
-}
-
-/// Per-vertex `albedo` `[V, 3]` baked into a `size x size` texture: every triangle drawn in
-/// uv space (`u` right, `v` up, OBJ convention) with its corners' albedo interpolated
-/// barycentrically at pixel centres (or its region's constant colour), later triangles over
-/// earlier ones; then four rounds of dilation (each empty pixel next to drawn ones gets their
-/// mean) so that bilinear lookups at the seams do not pick up the background.
-pub fn bake_albedo(
-    uvs: &Array2<f64>,
-    faces: &[[u32; 3]],
-    albedo: &Array2<f64>,
-    region_colour: &[Option<[f64; 3]>],
-    size: usize,
-) -> Array3<f64> {
-    let n = size as f64;
-    let mut tex = Array3::<f64>::zeros((size, size, 3));
-    let mut filled = Array2::<bool>::from_elem((size, size), false);
-    for (fi, f) in faces.iter().enumerate() {
-        let v = f.map(|x| x as usize);
-        let p = v.map(|i| [uvs[[i, 0]] * n, (1.0 - uvs[[i, 1]]) * n]);
-        let area =
-            (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[2][0] - p[0][0]) * (p[1][1] - p[0][1]);
-        if !area.is_finite() || area.abs() < 1e-12 {
-            continue;
-        }
-        // Pixels whose centres lie in the triangle's bounding box.
-        let span = |k: usize| {
-            let lo = p.iter().map(|q| q[k]).fold(f64::INFINITY, f64::min);
-            let hi = p.iter().map(|q| q[k]).fold(f64::NEG_INFINITY, f64::max);
-            let a = (lo - 0.5).ceil().clamp(0.0, n);
-            let b = ((hi - 0.5).floor() + 1.0).clamp(a, n);
-            a as usize..b as usize
-        };
-        let colour = region_colour.get(fi).copied().flatten();
-        for r in span(1) {
-            for c in span(0) {
-                let (x, y) = (c as f64 + 0.5, r as f64 + 0.5);
-                let edge = |a: [f64; 2], b: [f64; 2]| {
-                    (b[0] - a[0]) * (y - a[1]) - (b[1] - a[1]) * (x - a[0])
-                };
-                let b = [
-                    edge(p[1], p[2]) / area,
-                    edge(p[2], p[0]) / area,
-                    edge(p[0], p[1]) / area,
-                ];
-                if b.iter().any(|&w| w < -1e-9) {
-                    continue;
-                }
-                for k in 0..3 {
-                    tex[[r, c, k]] = match colour {
-                        Some(col) => col[k],
-                        None => (0..3).map(|j| b[j] * albedo[[v[j], k]]).sum(),
-                    };
-                }
-                filled[[r, c]] = true;
-            }
-        }
-    }
-    for _ in 0..4 {
-        let prev = filled.clone();
-        let src = tex.clone();
-        for r in 0..size {
-            for c in 0..size {
-                if prev[[r, c]] {
-                    continue;
-                }
-                let mut sum = [0.0; 3];
-                let mut cnt = 0.0;
-                for (dr, dc) in [(-1isize, 0isize), (1, 0), (0, -1), (0, 1)] {
-                    let (rr, cc) = (r as isize + dr, c as isize + dc);
-                    if rr < 0 || cc < 0 || rr >= size as isize || cc >= size as isize {
-                        continue;
-                    }
-                    let (rr, cc) = (rr as usize, cc as usize);
-                    if prev[[rr, cc]] {
-                        for (k, s) in sum.iter_mut().enumerate() {
-                            *s += src[[rr, cc, k]];
-                        }
-                        cnt += 1.0;
-                    }
-                }
-                if cnt > 0.0 {
-                    for (k, s) in sum.iter().enumerate() {
-                        tex[[r, c, k]] = s / cnt;
-                    }
-                    filled[[r, c]] = true;
-                }
-            }
-        }
-    }
-    tex
 }
 
 fn params_json(
@@ -1034,28 +975,5 @@ mod tests {
             let m_out = odd.slice(s![.., .., k]).mean().unwrap();
             assert!((m_in - m_out).abs() < 1e-12, "{m_in} vs {m_out}");
         }
-    }
-
-    #[test]
-    fn baked_albedo_interpolates_the_corners() {
-        let uvs = Array2::from_shape_vec((3, 2), vec![0.0, 0.0, 1.0, 0.0, 0.0, 1.0]).unwrap();
-        let albedo =
-            Array2::from_shape_vec((3, 3), vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
-                .unwrap();
-        let n = 16;
-        let tex = bake_albedo(&uvs, &[[0, 1, 2]], &albedo, &[None], n);
-        // Texel (row 12, col 2): centre (2.5, 12.5) = uv (2.5 / 16, 1 - 12.5 / 16).
-        let (u, v) = (2.5 / 16.0, 1.0 - 12.5 / 16.0);
-        let want = [1.0 - u - v, u, v];
-        for k in 0..3 {
-            assert!((tex[[12, 2, k]] - want[k]).abs() < 1e-12);
-        }
-        // Beyond the diagonal: four dilation rounds fill pixels next to the triangle, the far
-        // corner stays empty.
-        assert!(tex.slice(s![0, 15, ..]).iter().all(|&x| x == 0.0));
-        assert!(tex.slice(s![0, 0, ..]).iter().any(|&x| x > 0.0));
-        // A region colour replaces the interpolation.
-        let tex = bake_albedo(&uvs, &[[0, 1, 2]], &albedo, &[Some([0.1, 0.2, 0.3])], n);
-        assert_eq!(tex[[12, 2, 1]], 0.2);
     }
 }

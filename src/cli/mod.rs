@@ -178,6 +178,12 @@ pub enum Command {
         /// resized (area filter, aspect kept) so that their longer side is this.
         #[arg(long, default_value_t = 256)]
         size: usize,
+        /// Side of the albedo texture (albedo.png) fitted after the model fit, texels.
+        #[arg(long, default_value_t = 512)]
+        texture_size: usize,
+        /// Iterations of the albedo-texture stage (0: the fitted model albedo, baked).
+        #[arg(long, default_value_t = 30)]
+        texture_iters: usize,
     },
     /// Detect faces in a photo and their 468 MediaPipe face-mesh landmarks; prints the faces
     /// and their scores, writes the landmark file (as `fit-face --landmarks` reads it) and an
@@ -297,6 +303,8 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
             seed,
             method,
             size,
+            texture_size,
+            texture_iters,
         } => fit_face::run(&fit_face::Args {
             target,
             landmarks,
@@ -307,6 +315,8 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
             seed,
             method,
             size,
+            texture_size,
+            texture_iters,
         }),
         Command::Landmarks {
             photo,

@@ -241,7 +241,16 @@ fn cli_fit_face_writes_its_files() {
     let d = tmpdir("cli");
     let out = tapestry()
         .args([
-            "fit-face", "--iters", "8", "--size", "64", "--seed", "3", "--out",
+            "fit-face",
+            "--iters",
+            "8",
+            "--size",
+            "64",
+            "--seed",
+            "3",
+            "--texture-size",
+            "64",
+            "--out",
         ])
         .arg(&d)
         .output()

@@ -33,9 +33,11 @@
 //! step instead of being parked and woken for each (call [`fit`] from inside the pool, as
 //! `tapestry fit-face` does, so that the calling thread is a worker too).
 
+mod export;
 mod landmarks;
 mod render;
 mod synth;
+mod texture;
 
 use std::time::Instant;
 
@@ -45,11 +47,19 @@ use ndarray::{Array2, Array3, ArrayD, IxDyn};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+pub use export::{face_obj, FaceObj};
 pub use landmarks::{
     correspondence, read_landmarks, Correspondence, LandmarkFileError, MEDIAPIPE_TO_IBUG68,
 };
-pub use render::{Active, FaceRenderer, ParamVars, RenderOptions, FAR_MM, NEAR_MM};
+pub use render::{
+    Active, FaceRenderer, ParamVars, RenderOptions, SurfaceSamples, FAR_MM, NEAR_MM,
+    TEXTURE_SAMPLER,
+};
 pub use synth::{euler_to_axis_angle, synthesize, SynthOptions, Synthetic};
+pub use texture::{
+    bake_albedo, fit_texture, render_textured, texture_prior, textured_faces, BakedTexture,
+    TextureFit, TextureOptions, UNTEXTURED_REGIONS,
+};
 
 use crate::morphable::{LandmarkPoint, Morphable, PointShape};
 
@@ -163,6 +173,17 @@ impl FaceParams {
     /// Model-space shape `[V, 3]` in millimetres.
     pub fn shape(&self, model: &Morphable<f64>) -> Result<Array2<f64>, FitError> {
         Ok(model.eval_shape_standardized(&self.z_id, &self.z_exp)?)
+    }
+
+    /// Per-vertex albedo `[V, 3]` of the fitted appearance.
+    pub fn albedo(&self, model: &Morphable<f64>) -> Result<Array2<f64>, FitError> {
+        let gamma: Vec<f64> = self
+            .z_albedo
+            .iter()
+            .zip(model.sigma_albedo())
+            .map(|(z, s)| z * s)
+            .collect();
+        Ok(model.eval_albedo(&gamma)?)
     }
 
     /// Checks the coefficient counts against `model` and that every value is finite.
@@ -503,12 +524,10 @@ impl Problem<'_> {
         let mut photo_term = None;
         if photo {
             let img = self.renderer.image(self.renderer.posed(&v), &v)?;
-            let op = PhotoLossOp {
-                target: self.target_img.clone(),
-                eps: w.charbonnier_eps,
-                scale: 0.0,
-            };
-            let ph = tape.apply(op, &[img]);
+            let ph = tape.apply(
+                PhotoLossOp::new(self.target_img.clone(), w.charbonnier_eps),
+                &[img],
+            );
             loss = loss + ph * w.photo;
             photo_term = Some(ph);
             if active.appearance {
@@ -545,12 +564,23 @@ impl Problem<'_> {
 /// The photometric term as one fused op: `sum_p m_p rho(I_p - T_p) / (3 sum_p m_p)` over the
 /// RGB channels of an image `[H, W, 4]`, with `m` its alpha channel held constant (no gradient
 /// flows into alpha) and `rho` the Charbonnier penalty. Zero when nothing is covered. Fusing
-/// it avoids eight image-sized intermediates per step; the sum runs in a fixed order.
+/// it avoids eight image-sized intermediates per step; the sum runs in a fixed order. Any
+/// `[N, 1, 4]` list of weighted samples works the same way (the texture stage).
 struct PhotoLossOp {
     target: std::sync::Arc<Tensor<f64>>,
     eps: f64,
     /// `1 / (3 sum m)`, set by the forward.
     scale: f64,
+}
+
+impl PhotoLossOp {
+    fn new(target: std::sync::Arc<Tensor<f64>>, eps: f64) -> Self {
+        PhotoLossOp {
+            target,
+            eps,
+            scale: 0.0,
+        }
+    }
 }
 
 impl autodiff::Op<f64> for PhotoLossOp {
@@ -862,11 +892,7 @@ mod tests {
         alpha[[0, 0, 0]] = 0.0;
         let target = std::sync::Arc::new(rng.uniform_tensor::<f64>(&[5, 6, 3], 0.0, 1.0));
         let eps = 0.05;
-        let op = |t: &std::sync::Arc<Tensor<f64>>| PhotoLossOp {
-            target: t.clone(),
-            eps,
-            scale: 0.0,
-        };
+        let op = |t: &std::sync::Arc<Tensor<f64>>| PhotoLossOp::new(t.clone(), eps);
         let tape = Tape::new();
         let x = tape.leaf(rgb.clone());
         let a = tape.constant(alpha.clone());

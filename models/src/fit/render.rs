@@ -22,12 +22,14 @@
 use std::sync::Arc;
 
 use autodiff::{Tape, Var};
-use ndarray::{Array2, Array3, ArrayD};
+use ndarray::{Array2, Array3, ArrayD, IxDyn};
+use render_ops::error::RenderError;
 use render_ops::interpolate::interpolate;
 use render_ops::methods::{render_fragments, MethodSettings};
 use render_ops::scene::Method;
 use render_ops::shade::normals::vertex_normals;
 use render_ops::shade::sh::sh_shade;
+use render_ops::texture::{sample, Filter, Sampler, Wrap};
 use render_ops::transform::{axis_angle_to_matrix, perspective_clip, rigid_transform};
 
 use super::{FaceParams, FitError};
@@ -102,6 +104,8 @@ pub struct FaceRenderer<'m> {
     split: RegionSplit<f64>,
     model_faces: Arc<Vec<[u32; 3]>>,
     render_faces: Arc<Vec<[u32; 3]>>,
+    /// Texture coordinates of the render vertices `[V', 2]`, when the model has uvs.
+    uvs: Option<Arc<ArrayD<f64>>>,
     /// The settings.
     pub options: RenderOptions,
 }
@@ -117,8 +121,12 @@ impl<'m> FaceRenderer<'m> {
         }
         let split = model.region_split();
         let render_faces = Arc::new(split.faces.clone());
+        let uvs = model
+            .uvs()
+            .map(|uv| Arc::new(split.gather_plain(uv).into_dyn()));
         Ok(FaceRenderer {
             model,
+            uvs,
             split,
             model_faces: Arc::new(model.faces().to_vec()),
             render_faces,
@@ -209,24 +217,123 @@ impl<'m> FaceRenderer<'m> {
         world: Var<'t, f64>,
         v: &ParamVars<'t>,
     ) -> Result<Var<'t, f64>, FitError> {
+        self.shaded(world, v, None)
+    }
+
+    /// [`FaceRenderer::image`] with the albedo of the faces marked in `textured` (one flag
+    /// per model face) sampled from an albedo texture `texels` `[S, S, 3]` in the model's uv
+    /// space ([`TEXTURE_SAMPLER`]) instead of interpolated from the vertices: per-pixel
+    /// albedo, shaded per pixel. Errors when the model has no uvs.
+    pub fn image_textured<'t>(
+        &self,
+        world: Var<'t, f64>,
+        v: &ParamVars<'t>,
+        texels: Var<'t, f64>,
+        textured: &Arc<Vec<bool>>,
+    ) -> Result<Var<'t, f64>, FitError> {
+        if textured.len() != self.render_faces.len() {
+            return Err(FitError::Invalid(format!(
+                "{} texture flags for {} faces",
+                textured.len(),
+                self.render_faces.len()
+            )));
+        }
+        self.shaded(world, v, Some((texels, textured)))
+    }
+
+    fn shaded<'t>(
+        &self,
+        world: Var<'t, f64>,
+        v: &ParamVars<'t>,
+        texture: Option<(Var<'t, f64>, &Arc<Vec<bool>>)>,
+    ) -> Result<Var<'t, f64>, FitError> {
         let tape = world.tape();
         let normals = self.split.gather(vertex_normals(world, &self.model_faces));
         let albedo = self
             .split
             .albedo(self.model.albedo_standardized(tape, v.z_albedo));
+        let uvs = match (texture.is_some(), &self.uvs) {
+            (false, _) => None,
+            (true, Some(uv)) => Some(tape.var_shared(uv.clone(), false)),
+            (true, None) => {
+                return Err(FitError::Invalid(format!(
+                    "model {} has no uvs: it cannot be textured",
+                    self.model.name()
+                )))
+            }
+        };
         let pos = self.split.gather(world);
         let clip = self.clip(pos, v.focal)?;
+        let s = self.method_settings();
+        let faces = self.render_faces.clone();
+        Ok(render_fragments(clip, faces, &s, &mut |r| {
+            let n = interpolate(normals, r)?;
+            let mut a = interpolate(albedo, r)?;
+            if let (Some((texels, textured)), Some(uvs)) = (texture, uvs) {
+                let t = sample(texels, interpolate(uvs, r)?, None, TEXTURE_SAMPLER);
+                let face = &r.fragments.face;
+                let mask = ArrayD::from_shape_fn(IxDyn(&[face.len(), 3]), |i| {
+                    textured[face[i[0]] as usize]
+                });
+                a = t.where_(mask, a);
+            }
+            Ok(sh_shade(n, a, v.sh))
+        })?)
+    }
+
+    fn method_settings(&self) -> MethodSettings {
         let o = &self.options;
         let mut s = MethodSettings::new(o.method, o.width, o.height);
         s.view.background = o.background.to_vec();
         (s.sigma, s.gamma, s.delta) = (o.sigma, o.gamma, o.delta);
         (s.near, s.far) = (NEAR_MM, FAR_MM);
-        let faces = self.render_faces.clone();
-        Ok(render_fragments(clip, faces, &s, &mut |r| {
-            let n = interpolate(normals, r)?;
-            let a = interpolate(albedo, r)?;
-            Ok(sh_shade(n, a, v.sh))
-        })?)
+        s
+    }
+
+    /// The surface seen at every covered pixel of the face posed by `p` (hard rasterization
+    /// through the method registry, whatever the renderer's method): what a stage that keeps
+    /// the geometry fixed needs, computed once.
+    pub fn surface_samples(&self, p: &FaceParams) -> Result<SurfaceSamples, FitError> {
+        let uvs = self.uvs.as_ref().ok_or_else(|| {
+            FitError::Invalid(format!(
+                "model {} has no uvs: it cannot be textured",
+                self.model.name()
+            ))
+        })?;
+        let tape = Tape::new();
+        let v = self.vars(&tape, p, Active::NONE);
+        let world = self.posed(&v);
+        let normals = self.split.gather(vertex_normals(world, &self.model_faces));
+        let albedo = self
+            .split
+            .albedo(self.model.albedo_standardized(&tape, v.z_albedo));
+        let pos = self.split.gather(world);
+        let uv = tape.var_shared(uvs.clone(), false);
+        let clip = self.clip(pos, v.focal)?;
+        let mut s = self.method_settings();
+        s.method = Method::Hard;
+        let mut out = None;
+        render_fragments(clip, self.render_faces.clone(), &s, &mut |r| {
+            let col = interpolate(albedo, r)?;
+            let [position, normal, uv] = [pos, normals, uv].map(|x| interpolate(x, r));
+            let plain =
+                |x: Var<'_, f64>| -> Result<Array2<f64>, RenderError> { Ok(to2(&*x.value()?)) };
+            let f = &r.fragments;
+            let mut pixel = vec![0; f.face.len()];
+            for (px, w) in f.offsets.windows(2).enumerate() {
+                pixel[w[0] as usize..w[1] as usize].fill(px);
+            }
+            out = Some(SurfaceSamples {
+                pixel,
+                face: f.face.clone(),
+                position: plain(position?)?,
+                normal: plain(normal?)?,
+                uv: plain(uv?)?,
+                albedo: plain(col)?,
+            });
+            Ok(col)
+        })?;
+        out.ok_or_else(|| FitError::Invalid("the rasterizer called no shader".into()))
     }
 
     /// Plain render of `p`: the image `[H, W, 4]` and all vertices' pixel positions `[V, 2]`.
@@ -251,6 +358,32 @@ impl<'m> FaceRenderer<'m> {
         let px = self.project_px(world, v.focal, points)?.value()?;
         Ok(to2(&px))
     }
+}
+
+/// How the albedo texture is sampled: bilinear, clamped to the edge (uvs outside `[0, 1]`
+/// belong to untextured regions).
+pub const TEXTURE_SAMPLER: Sampler = Sampler {
+    filter: Filter::Bilinear,
+    wrap: Wrap::Clamp,
+};
+
+/// The surface seen at the `N` covered pixels of a hard rasterization
+/// ([`FaceRenderer::surface_samples`]): one row per pixel, values interpolated
+/// perspective-correctly from the render vertices.
+#[derive(Clone, Debug)]
+pub struct SurfaceSamples {
+    /// Row-major pixel index `row * width + col`.
+    pub pixel: Vec<usize>,
+    /// The model face seen.
+    pub face: Vec<u32>,
+    /// View-space position `[N, 3]` (millimetres; the camera at the origin).
+    pub position: Array2<f64>,
+    /// Interpolated vertex normal `[N, 3]` (not normalised).
+    pub normal: Array2<f64>,
+    /// Texture coordinates `[N, 2]`.
+    pub uv: Array2<f64>,
+    /// Interpolated vertex albedo `[N, 3]` (region colours included).
+    pub albedo: Array2<f64>,
 }
 
 /// Model-space positions `[N, 3]` posed by `v`'s rotation and translation.

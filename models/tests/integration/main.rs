@@ -6,3 +6,4 @@ mod detect;
 mod face_model;
 mod ict_model;
 mod model_io;
+mod texture_stage;
