@@ -35,8 +35,9 @@ each (the Monte Carlo noise at that spp).
 Timings (the same run): forward+backward is the time of the gradient calls above (after one
 warm-up call; min and median over the seeds), forward that of --reps renders after a warm-up;
 wall-clock and CPU time (user + system of all threads: robust on a shared machine).
-Tapestry: whole `tapestry render` / `tapestry grad --wrt positions` processes (f64, scene and
-OBJ parsing, output file); Mitsuba: in process, bench_mitsuba.py's protocol (float32; forward =
+Tapestry: in process, `tapestry render` / `tapestry grad --wrt positions` with `--repeat reps`
+(f64; the render or gradient only, as Mitsuba's; the whole processes, with start-up, scene and
+OBJ parsing and output files, are recorded too as *_process_ms); Mitsuba: in process, bench_mitsuba.py's protocol (float32; forward =
 params.update() (BVH rebuild) + render + copy to numpy; fwd+bwd adds dr.backward of L and
 reading the vertex gradient). Mitsuba's integrator: direct_projective with sppc = sppp = spp and
 sppi = spp for the lit scenes (shadow gradients), 0 for ico5k (bench_mitsuba.py's setting: no
@@ -163,6 +164,16 @@ def tap_grad(js, target_npy, times=None):
     if times is not None:
         times.append(t)
     return np.load(g)
+
+
+def tap_inproc(cmd, reps):
+    """In-process timings of a `tapestry render` / `grad` command with `--repeat reps` (no
+    start-up, parsing or output files): ([wall min, median], [CPU mean, mean]) in ms."""
+    r = subprocess.run(cmd + ["--repeat", str(reps)], check=True, env=ENV,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    t = json.loads(r.stderr.strip().splitlines()[-1])
+    cpu = t["cpu_ms_mean"] if t["cpu_ms_mean"] is not None else float("nan")
+    return [t["wall_ms_min"], t["wall_ms_median"]], [cpu, cpu]
 
 
 def summary(ts):
@@ -319,7 +330,17 @@ def run(name, s):
                 ts.append((1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)))
             if sd > 0:
                 gs.append(J.T @ gp.ravel())
-        rec[f"{who}_fwd_bwd_ms"], rec[f"{who}_fwd_bwd_cpu_ms"] = summary(ts[1:])
+        if who == "tapestry":
+            # the gradient processes above, whole (start-up, parsing, output file), kept
+            # beside the in-process timing that is compared with Mitsuba's in-process calls
+            rec["tapestry_fwd_bwd_process_ms"], rec["tapestry_fwd_bwd_process_cpu_ms"] = \
+                summary(ts[1:])
+            js = tap_json(name, s, s["V"], s["C"], a.spp, 100, "grad")
+            rec["tapestry_fwd_bwd_ms"], rec["tapestry_fwd_bwd_cpu_ms"] = tap_inproc(
+                [a.tapestry, "grad", js, "--target", tnpy, "--wrt", "positions",
+                 "--out", js[:-5] + "_g.npy"], a.reps)
+        else:
+            rec[f"{who}_fwd_bwd_ms"], rec[f"{who}_fwd_bwd_cpu_ms"] = summary(ts[1:])
         rec[f"grad_{who}"] = [g.tolist() for g in gs]
         for rn, ref in refs.items():
             cr = np.array([compare(g, ref) for g in gs])
@@ -329,7 +350,9 @@ def run(name, s):
     # forward timings
     js = tap_json(name, s, s["V"], s["C"], a.spp, 0, "time")
     ts = [run_cpu([a.tapestry, "render", js, "--out", js[:-5] + ".png"]) for _ in range(a.reps)]
-    rec["tapestry_forward_ms"], rec["tapestry_forward_cpu_ms"] = summary(ts)
+    rec["tapestry_forward_process_ms"], rec["tapestry_forward_process_cpu_ms"] = summary(ts)
+    rec["tapestry_forward_ms"], rec["tapestry_forward_cpu_ms"] = tap_inproc(
+        [a.tapestry, "render", js, "--out", js[:-5] + ".png"], a.reps)
     cnt2 = [1000]
 
     def mfwd():
@@ -361,7 +384,9 @@ with open(os.path.join(a.out, "compare.jsonl"), "a") as fh:
               flush=True)
         print(f"  CPU: forward tapestry {f(r['tapestry_forward_cpu_ms'])} ms / mitsuba {f(r['mitsuba_forward_cpu_ms'])} ms; "
               f"fwd+bwd tapestry {f(r['tapestry_fwd_bwd_cpu_ms'])} ms / mitsuba {f(r['mitsuba_fwd_bwd_cpu_ms'])} ms "
-              f"(user + system, all threads, min)", flush=True)
+              f"(user + system, all threads; Tapestry: mean)", flush=True)
+        print(f"  whole Tapestry processes: forward {f(r['tapestry_forward_process_ms'])} ms, "
+              f"fwd+bwd {f(r['tapestry_fwd_bwd_process_ms'])} ms (wall, min)", flush=True)
         print(f"  image RMSE tapestry-mitsuba {r['image_rmse_tapestry_vs_mitsuba']:.4f} "
               f"(noise alone: {r['image_rmse_noise_expected']:.4f}); means {r['image_mean_tapestry']:.4f} / "
               f"{r['image_mean_mitsuba']:.4f}", flush=True)
