@@ -49,7 +49,7 @@ use smallvec::SmallVec;
 use crate::error::{AutodiffError, Pass, Result};
 use crate::ops::elementwise::{sigmoid, Binary, Unary};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{Tensor, PAR_MIN_LEN};
+use crate::tensor::{Tensor, TensorView, PAR_MIN_LEN};
 use crate::Real;
 
 /// Elements per chunk by default (per row-varying node; with ~50 nodes of f32 this keeps a
@@ -1344,14 +1344,18 @@ impl<T> SyncPtr<T> {
 }
 
 /// Flat row-major values of the inputs.
-fn flat<'a, T: Real>(inputs: &[&'a Tensor<T>]) -> Vec<Cow<'a, [T]>> {
-    inputs
-        .iter()
-        .map(|t| match t.as_slice() {
-            Some(s) => Cow::Borrowed(s),
-            None => Cow::Owned(t.iter().copied().collect()),
-        })
-        .collect()
+fn flat<'a, T: Real>(inputs: &'a [TensorView<'_, T>]) -> Vec<Cow<'a, [T]>> {
+    inputs.iter().map(flat_one).collect()
+}
+
+/// One tensor's elements in row-major order: borrowed when its layout is standard.
+fn flat_one<T: Real, S: ndarray::Data<Elem = T>>(
+    t: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+) -> Cow<'_, [T]> {
+    match t.as_slice() {
+        Some(s) => Cow::Borrowed(s),
+        None => Cow::Owned(t.iter().copied().collect()),
+    }
 }
 
 /// The chunk interpreter compiled for the baseline target, AVX2 + FMA and AVX-512 (chosen at
@@ -1397,7 +1401,7 @@ impl<T: Real> Op<T> for FusedOp<T> {
         "fused"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
         let this = &*self;
         let flat = flat(inputs);
         let ext = this.ext_values(&flat);
@@ -1461,7 +1465,7 @@ impl<T: Real> Op<T> for FusedOp<T> {
         Ok(outs)
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let needs: Vec<bool> = (0..self.n_in)
             .map(|k| ctx.needs_grad[k] && self.ext_live[k])
             .collect();
@@ -1545,7 +1549,7 @@ impl<T: Real> FusedOp<T> {
     fn backward_preaccumulated(
         &self,
         p: &Preacc<T>,
-        ctx: &BackwardCtx<'_, T>,
+        ctx: &BackwardCtx<'_, '_, T>,
         needs: &[bool],
     ) -> Option<Vec<Option<Vec<T>>>> {
         if p.jac.is_empty() || needs.iter().zip(&p.jac).any(|(&n, j)| n && j.is_none()) {
@@ -1597,7 +1601,7 @@ impl<T: Real> FusedOp<T> {
         Some(grads)
     }
 
-    fn backward_recompute(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward_recompute(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let flat = flat(ctx.inputs);
         let ext = self.ext_values(&flat);
         let gouts: Vec<Cow<'_, [T]>> = flat_refs(ctx.grad_outputs);
@@ -1697,5 +1701,5 @@ impl<T: Real> FusedOp<T> {
 }
 
 fn flat_refs<'a, T: Real>(ts: &[&'a Tensor<T>]) -> Vec<Cow<'a, [T]>> {
-    flat(ts)
+    ts.iter().map(|t| flat_one(*t)).collect()
 }

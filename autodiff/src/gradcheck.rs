@@ -365,7 +365,7 @@ where
     let t32 = Tape::<f32>::new();
     let v32: Vec<_> = inputs
         .iter()
-        .map(|x| t32.leaf(cast::<f64, f32>(x)))
+        .map(|x| t32.leaf(cast::<f64, f32, _>(x)))
         .collect();
     let y32 = f32f(&t32, &v32);
     let y32v = (*y32.value()?).clone();
@@ -376,7 +376,7 @@ where
             "f32 and f64 outputs differ in shape",
         ));
     }
-    let g32 = t32.vjp(y32, cast::<f64, f32>(&w))?;
+    let g32 = t32.vjp(y32, cast::<f64, f32, _>(&w))?;
     Ok(PrecisionReport {
         value_rel: normwise(&y32v, &y64v),
         grad_rel: v32

@@ -22,13 +22,14 @@ use crate::fused::{Arg, Dag, DagNode, FusedBackward, Kind, DEFAULT_CHUNK};
 use crate::ops::elementwise::{BinaryOp, MulSelfOp, UnaryOp, WhereOp};
 use crate::ops::reduce::SumOp;
 use crate::ops::vector::NormalizeOp;
-use crate::tensor::{all_finite, scalar, Tensor};
+use crate::storage::{Buffer, Value};
+use crate::tensor::{all_finite, scalar, Tensor, TensorView};
 use crate::Real;
 
-/// What an op's backward receives.
-pub struct BackwardCtx<'a, T: Real> {
+/// What an op's backward receives (`'v`: the life of the input values it views).
+pub struct BackwardCtx<'a, 'v, T: Real> {
     /// Input values, in the order the op was applied to them.
-    pub inputs: &'a [&'a Tensor<T>],
+    pub inputs: &'a [TensorView<'v, T>],
     /// Output values of the forward.
     pub outputs: &'a [&'a Tensor<T>],
     /// Gradient of the loss with respect to each output (zeros for outputs that did not
@@ -45,17 +46,17 @@ pub trait Op<T: Real>: 'static {
     /// Name shown in errors, anomaly reports and gradcheck tables.
     fn name(&self) -> &'static str;
     /// Computes the outputs from the inputs. Shape problems are returned as errors.
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>>;
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>>;
     /// Returns, for every input, the gradient of the loss (same shape as the input), or `None`
     /// where `ctx.needs_grad` is false.
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>>;
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>>;
     /// [`Op::backward`] of a single-output op, given its output gradient by value: the tape
     /// drops it afterwards, so an op may compute an input's gradient in its buffer instead of
     /// allocating one (elementwise ops do). The default borrows it and calls
     /// [`Op::backward`]; an override must return the same values.
     fn backward_owned(
         &self,
-        inputs: &[&Tensor<T>],
+        inputs: &[TensorView<'_, T>],
         outputs: &[&Tensor<T>],
         needs_grad: &[bool],
         grad_output: Tensor<T>,
@@ -70,7 +71,7 @@ pub trait Op<T: Real>: 'static {
 }
 
 struct Slot<T: Real> {
-    value: Arc<Tensor<T>>,
+    value: Value<T>,
     requires_grad: bool,
     poisoned: bool,
     /// The op (index into `ops`) that produced this variable; `None` for leaves and constants.
@@ -231,7 +232,7 @@ impl<T: Real> Tape<T> {
         self.inner.borrow().error.clone()
     }
 
-    fn push_slot(&self, value: Arc<Tensor<T>>, requires_grad: bool) -> Var<'_, T> {
+    fn push_slot(&self, value: Value<T>, requires_grad: bool) -> Var<'_, T> {
         let mut inner = self.inner.borrow_mut();
         let id = inner.slots.len() as u32;
         inner.slots.push(Slot {
@@ -246,7 +247,7 @@ impl<T: Real> Tape<T> {
 
     /// A leaf variable; `requires_grad` says whether backward computes its gradient.
     pub fn var(&self, value: Tensor<T>, requires_grad: bool) -> Var<'_, T> {
-        self.push_slot(Arc::new(value), requires_grad)
+        self.push_slot(Value::Owned(Arc::new(value)), requires_grad)
     }
 
     /// A leaf that requires gradients (a parameter).
@@ -256,7 +257,30 @@ impl<T: Real> Tape<T> {
 
     /// A leaf sharing an existing tensor without copying it.
     pub fn var_shared(&self, value: Arc<Tensor<T>>, requires_grad: bool) -> Var<'_, T> {
-        self.push_slot(value, requires_grad)
+        self.push_slot(Value::Owned(value), requires_grad)
+    }
+
+    /// A leaf reading `buffer` (row-major, of `shape`) in place, without copying it: ops see
+    /// it as a view, and the tape keeps the buffer alive while it holds the variable. Its
+    /// gradient, when `requires_grad`, is an owned tensor as for any leaf.
+    pub fn var_borrowed(
+        &self,
+        shape: &[usize],
+        buffer: Arc<dyn Buffer<T>>,
+        requires_grad: bool,
+    ) -> Result<Var<'_, T>> {
+        let n: usize = shape.iter().product();
+        if buffer.data().len() != n {
+            return Err(AutodiffError::shape(
+                "var_borrowed",
+                &[shape],
+                format!(
+                    "a buffer of {} values for {n} elements",
+                    buffer.data().len()
+                ),
+            ));
+        }
+        Ok(self.push_slot(Value::Borrowed(buffer, IxDyn(shape)), requires_grad))
     }
 
     /// A constant (no gradient).
@@ -303,7 +327,7 @@ impl<T: Real> Tape<T> {
             .map(|_| {
                 let id = inner.slots.len() as u32;
                 inner.slots.push(Slot {
-                    value: empty.clone(),
+                    value: Value::Owned(empty.clone()),
                     requires_grad: false,
                     poisoned: true,
                     producer: None,
@@ -337,7 +361,7 @@ impl<T: Real> Tape<T> {
         if !pending.is_empty() {
             self.materialize_ids(&pending);
         }
-        let mut values: SmallVec<[Arc<Tensor<T>>; 4]> = SmallVec::new();
+        let mut values: SmallVec<[Value<T>; 4]> = SmallVec::new();
         let mut requires_grad = false;
         {
             let inner = self.inner.borrow();
@@ -359,7 +383,7 @@ impl<T: Real> Tape<T> {
             }
         }
         requires_grad &= !self.is_no_grad();
-        let refs: SmallVec<[&Tensor<T>; 4]> = values.iter().map(|a| &**a).collect();
+        let refs: SmallVec<[TensorView<'_, T>; 4]> = values.iter().map(Value::view).collect();
         let outs = match op.forward(&refs) {
             Ok(o) if o.len() == n_outputs => o,
             Ok(o) => {
@@ -397,7 +421,7 @@ impl<T: Real> Tape<T> {
         for o in outs {
             let id = inner.slots.len() as u32;
             inner.slots.push(Slot {
-                value: Arc::new(o),
+                value: Value::Owned(Arc::new(o)),
                 requires_grad,
                 poisoned: false,
                 producer,
@@ -544,7 +568,7 @@ impl<T: Real> Tape<T> {
         let id = inner.slots.len() as u32;
         let placeholder = match inner.slots.last() {
             Some(s) if s.pending.is_some() => s.value.clone(),
-            _ => Arc::new(scalar(T::nan())),
+            _ => Value::Owned(Arc::new(scalar(T::nan()))),
         };
         inner.slots.push(Slot {
             value: placeholder,
@@ -777,7 +801,7 @@ impl<T: Real> Tape<T> {
     /// Runs `op` on the (computed) slots `inputs` and stores its outputs in the pending slots
     /// `outs`, recording it for backward when one of them requires gradients.
     fn record_into<O: Op<T>>(&self, mut op: O, inputs: &[u32], outs: &[u32]) {
-        let values: SmallVec<[Arc<Tensor<T>>; 4]> = {
+        let values: SmallVec<[Value<T>; 4]> = {
             let inner = self.inner.borrow();
             if inputs.iter().any(|&i| inner.slots[i as usize].poisoned) {
                 drop(inner);
@@ -788,7 +812,7 @@ impl<T: Real> Tape<T> {
                 .map(|&i| inner.slots[i as usize].value.clone())
                 .collect()
         };
-        let refs: SmallVec<[&Tensor<T>; 4]> = values.iter().map(|a| &**a).collect();
+        let refs: SmallVec<[TensorView<'_, T>; 4]> = values.iter().map(Value::view).collect();
         let vals = match op.forward(&refs) {
             Ok(v) if v.len() == outs.len() => v,
             Ok(v) => {
@@ -818,7 +842,7 @@ impl<T: Real> Tape<T> {
         let producer = rg.then_some(inner.ops.len() as u32);
         for (&o, v) in outs.iter().zip(vals) {
             let s = &mut inner.slots[o as usize];
-            s.value = Arc::new(v);
+            s.value = Value::Owned(Arc::new(v));
             s.pending = None;
             s.producer = producer;
         }
@@ -880,12 +904,17 @@ impl<T: Real> Tape<T> {
             let out_vals: SmallVec<[&Tensor<T>; 2]> = rec
                 .outputs
                 .iter()
-                .map(|&o| &*inner.slots[o as usize].value)
+                .map(|&o| {
+                    inner.slots[o as usize]
+                        .value
+                        .owned()
+                        .expect("op outputs are owned")
+                })
                 .collect();
-            let in_vals: SmallVec<[&Tensor<T>; 4]> = rec
+            let in_vals: SmallVec<[TensorView<'_, T>; 4]> = rec
                 .inputs
                 .iter()
-                .map(|&i| &*inner.slots[i as usize].value)
+                .map(|&i| inner.slots[i as usize].value.view())
                 .collect();
             needs.clear();
             needs.extend(
@@ -981,7 +1010,8 @@ impl<'t, T: Real> Var<'t, T> {
     pub fn id(&self) -> usize {
         self.id as usize
     }
-    /// The value, or the tape's first error if this variable was poisoned by it.
+    /// The value, or the tape's first error if this variable was poisoned by it. A borrowed
+    /// leaf ([`Tape::var_borrowed`]) is copied.
     pub fn value(&self) -> Result<Arc<Tensor<T>>> {
         if self.is_pending() {
             self.tape.materialize_ids(&[self.id]);
@@ -994,7 +1024,7 @@ impl<'t, T: Real> Var<'t, T> {
                 .clone()
                 .unwrap_or_else(|| AutodiffError::Tape("poisoned variable".into())));
         }
-        Ok(s.value.clone())
+        Ok(s.value.to_shared())
     }
     /// The single element of a one-element variable.
     pub fn item(&self) -> Result<T> {
@@ -1062,6 +1092,6 @@ impl<'t, T: Real> Var<'t, T> {
         }
         let value = s.value.clone();
         drop(inner);
-        self.tape.var_shared(value, false)
+        self.tape.push_slot(value, false)
     }
 }

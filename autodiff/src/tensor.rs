@@ -8,7 +8,7 @@
 
 use std::mem::MaybeUninit;
 
-use ndarray::{ArrayD, ArrayViewD, Axis, Dimension, IxDyn, Zip};
+use ndarray::{ArrayBase, ArrayD, ArrayViewD, Axis, Data, Dimension, IxDyn, Zip};
 use rayon::prelude::*;
 
 use crate::error::{AutodiffError, Result};
@@ -16,6 +16,9 @@ use crate::Real;
 
 /// An n-dimensional array of scalars (row-major by default).
 pub type Tensor<T> = ArrayD<T>;
+
+/// A borrowed tensor: how ops see their input values.
+pub type TensorView<'a, T> = ArrayViewD<'a, T>;
 
 /// Elements from which elementwise kernels go parallel.
 pub const PAR_MIN_LEN: usize = 1 << 15;
@@ -136,7 +139,7 @@ pub fn sum_slice<T: Real>(s: &[T]) -> T {
 }
 
 /// Sum of all elements: fixed-size chunks summed in parallel, partial sums added in order.
-pub fn sum_all_det<T: Real>(x: &Tensor<T>) -> T {
+pub fn sum_all_det<T: Real, S: Data<Elem = T>>(x: &ArrayBase<S, IxDyn>) -> T {
     match x.as_slice() {
         Some(s) if s.len() >= PAR_MIN_LEN => {
             let parts: Vec<T> = s.par_chunks(REDUCE_CHUNK).map(sum_slice).collect();
@@ -395,7 +398,7 @@ pub fn full<T: Real>(shape: &[usize], v: T) -> Tensor<T> {
 }
 
 /// `acc += g` elementwise (same shape), in place and in parallel for large tensors.
-pub fn add_assign<T: Real>(acc: &mut Tensor<T>, g: &Tensor<T>) {
+pub fn add_assign<T: Real, S: Data<Elem = T>>(acc: &mut Tensor<T>, g: &ArrayBase<S, IxDyn>) {
     if acc.shape() == g.shape() {
         if let (Some(a), Some(b)) = (acc.as_slice_mut(), g.as_slice()) {
             par_update(a, |o, at| upd2(o, &b[at..at + o.len()], &|x, y| x + y));
@@ -415,7 +418,7 @@ fn from_parts<T: Real>(shape: &[usize], v: Vec<T>) -> Tensor<T> {
 }
 
 /// `f` applied to every element (parallel for large tensors).
-pub fn map1<T: Real, F>(x: &Tensor<T>, f: F) -> Tensor<T>
+pub fn map1<T: Real, S: Data<Elem = T>, F>(x: &ArrayBase<S, IxDyn>, f: F) -> Tensor<T>
 where
     F: Fn(T) -> T + Sync + Send,
 {
@@ -432,7 +435,12 @@ where
 
 /// `fast` applied to every element, and `exact` where `ok` fails (the vectorised `f32`
 /// transcendentals and their range: see the `vmath` module).
-pub fn map1_fast<T: Real, F, P, E>(x: &Tensor<T>, fast: F, ok: P, exact: E) -> Tensor<T>
+pub fn map1_fast<T: Real, S: Data<Elem = T>, F, P, E>(
+    x: &ArrayBase<S, IxDyn>,
+    fast: F,
+    ok: P,
+    exact: E,
+) -> Tensor<T>
 where
     F: Fn(T) -> T + Sync + Send,
     P: Fn(T) -> bool + Sync + Send,
@@ -539,7 +547,7 @@ where
 }
 
 /// Checks that every element is finite.
-pub fn all_finite<T: Real>(x: &Tensor<T>) -> bool {
+pub fn all_finite<T: Real, S: Data<Elem = T>>(x: &ArrayBase<S, IxDyn>) -> bool {
     match x.as_slice() {
         Some(s) if s.len() >= PAR_MIN_LEN => s
             .par_chunks(REDUCE_CHUNK)
@@ -549,7 +557,7 @@ pub fn all_finite<T: Real>(x: &Tensor<T>) -> bool {
 }
 
 /// Casts a tensor to another scalar type.
-pub fn cast<T: Real, U: Real>(x: &Tensor<T>) -> Tensor<U> {
+pub fn cast<T: Real, U: Real, S: Data<Elem = T>>(x: &ArrayBase<S, IxDyn>) -> Tensor<U> {
     x.mapv(|v| U::from_f64c(v.to_f64c()))
 }
 

@@ -1,7 +1,10 @@
-//! numpy arrays in and out: dtype and shape checks with clear messages, the one copy of each
-//! float input into an owned tensor, faces as `u32` triangles, and outputs moved into numpy.
+//! numpy arrays in and out: dtype and shape checks with clear messages, float inputs read in
+//! place where numpy's layout allows (else copied once), faces as `u32` triangles, and outputs
+//! moved into numpy.
 
-use autodiff::{Real, Tensor};
+use std::sync::Arc;
+
+use autodiff::{Buffer, Real, Tape, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
 use numpy::{
     Element, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray, PyUntypedArrayMethods,
@@ -85,14 +88,89 @@ pub fn check_shape(
     }
 }
 
-/// A finite float input of dtype `T` and shape `want` as an owned tensor: one copy (a plain memcpy
-/// for C-contiguous arrays, an element walk in logical order for any other strides).
+/// A float input on its way to the tape: the numpy array's own memory when it is C-contiguous
+/// and aligned (read in place, no copy), else one copy in logical order. Cloning shares it.
+#[derive(Clone)]
+pub struct Floats<T: Real> {
+    shape: Vec<usize>,
+    buf: Arc<dyn Buffer<T>>,
+}
+
+impl<T: Real> Floats<T> {
+    /// A tensor's worth of values the binding made itself (defaults, not user input).
+    pub fn owned(t: Tensor<T>) -> Self {
+        let shape = t.shape().to_vec();
+        let data = autodiff::tensor::into_standard(t)
+            .into_raw_vec_and_offset()
+            .0;
+        Floats {
+            shape,
+            buf: Arc::new(data),
+        }
+    }
+
+    pub fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+
+    pub fn ndim(&self) -> usize {
+        self.shape.len()
+    }
+
+    /// A variable on `tape` reading these values in place ([`Tape::var_borrowed`]).
+    pub fn var<'t>(&self, tape: &'t Tape<T>, requires_grad: bool) -> Var<'t, T> {
+        tape.var_borrowed(&self.shape, self.buf.clone(), requires_grad)
+            .expect("length matches the shape by construction")
+    }
+
+    /// An owned copy (a reverse walk's seed, whose buffer the backward reuses in place).
+    pub fn to_tensor(&self) -> Tensor<T> {
+        ArrayD::from_shape_vec(IxDyn(&self.shape), self.buf.data().to_vec())
+            .expect("length matches the shape by construction")
+    }
+}
+
+/// Whether `floats` reads `array` in place (a test hook: `tapestry._tapestry._reads_in_place`).
+#[pyfunction]
+pub fn _reads_in_place(array: &Bound<'_, PyAny>) -> PyResult<bool> {
+    let any = vec![None; untyped("array", array)?.ndim()];
+    with_dtype!(dtype_of("array", array)?, T => {
+        let f = floats::<T>("array", array, &any, "any")?;
+        Ok(std::ptr::eq(f.buf.data().as_ptr(), array.cast::<PyArrayDyn<T>>()?.data()))
+    })
+}
+
+/// A numpy array's data, read in place. The array is kept alive by the reference held here, so
+/// its memory stays allocated for as long as a tape holds the buffer; the binding never writes
+/// through it. As with numpy's own GIL-releasing functions, Python code must not write to an
+/// input array from another thread while a call that reads it runs.
+struct NumpyBuffer<T> {
+    _array: Py<PyArrayDyn<T>>,
+    ptr: *const T,
+    len: usize,
+}
+
+// SAFETY: the pointer is only read (`data`), and the memory it points to lives as long as
+// `_array` (a strong reference, itself Send + Sync).
+unsafe impl<T: Sync> Send for NumpyBuffer<T> {}
+unsafe impl<T: Sync> Sync for NumpyBuffer<T> {}
+
+impl<T: Real> Buffer<T> for NumpyBuffer<T> {
+    fn data(&self) -> &[T] {
+        // SAFETY: `ptr` is non-null, aligned and points to `len` initialised elements of a
+        // C-contiguous array (checked in `floats`) that `_array` keeps alive.
+        unsafe { std::slice::from_raw_parts(self.ptr, self.len) }
+    }
+}
+
+/// A finite float input of dtype `T` and shape `want`. C-contiguous, aligned arrays are read in
+/// place (zero-copy); other layouts are copied once (by `numpy.require(x, dtype, "CA")`).
 pub fn floats<T: Element + Real>(
     name: &'static str,
     obj: &Bound<'_, PyAny>,
     want: &[Option<usize>],
     pattern: &str,
-) -> PyResult<Tensor<T>> {
+) -> PyResult<Floats<T>> {
     let a = untyped(name, obj)?;
     let py = obj.py();
     if !a.dtype().is_equiv_to(&numpy::dtype::<T>(py)) {
@@ -103,20 +181,44 @@ pub fn floats<T: Element + Real>(
         )));
     }
     check_shape(name, a.shape(), want, pattern)?;
-    let arr = obj.cast::<PyArrayDyn<T>>()?.readonly();
-    let v = arr.as_array();
-    let data: Vec<T> = match v.as_slice() {
-        Some(s) => s.to_vec(),
-        None => v.iter().copied().collect(),
+    let shape = a.shape().to_vec();
+    let len: usize = shape.iter().product();
+    let readable = |arr: &Bound<'_, PyArrayDyn<T>>| {
+        let ptr = arr.data() as *const T;
+        arr.is_c_contiguous()
+            && !ptr.is_null()
+            && (ptr as usize).is_multiple_of(std::mem::align_of::<T>())
     };
-    let t = ArrayD::from_shape_vec(IxDyn(v.shape()), data).expect("shape of the view");
+    let mut arr = obj.cast::<PyArrayDyn<T>>()?.clone();
+    if !readable(&arr) {
+        // The one copy: numpy's own, into a C-contiguous aligned array (Fortran order, slices,
+        // negative, zero or unaligned strides).
+        let np = py.import("numpy")?;
+        arr = np
+            .call_method1("require", (obj, numpy::dtype::<T>(py), "CA"))?
+            .cast_into::<PyArrayDyn<T>>()?;
+    }
+    let buf: Arc<dyn Buffer<T>> = if len == 0 {
+        Arc::new(Vec::<T>::new())
+    } else if readable(&arr) {
+        let ptr = arr.data() as *const T;
+        Arc::new(NumpyBuffer {
+            _array: arr.unbind(),
+            ptr,
+            len,
+        })
+    } else {
+        return Err(PyValueError::new_err(format!(
+            "{name}: numpy could not give a C-contiguous aligned copy"
+        )));
+    };
     // NaN or Inf would otherwise reach an image silently: named like the library does (a
     // flat scan first; the indexed search only for the message).
-    let flat = t.as_slice().expect("standard layout");
-    if !flat.iter().all(|x| x.is_finite()) {
+    if !buf.data().iter().all(|x| x.is_finite()) {
+        let t = ndarray::ArrayViewD::from_shape(IxDyn(&shape), buf.data()).expect("shape");
         RenderError::check_finite(name, &t).map_err(crate::to_py)?;
     }
-    Ok(t)
+    Ok(Floats { shape, buf })
 }
 
 /// Triangles `[F, 3]` of any integer dtype as `u32` vertex indices (one copy).

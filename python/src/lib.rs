@@ -3,9 +3,9 @@
 //! ([`ops`]), `fit_face` and `gradcheck` ([`tools`]).
 //!
 //! Arrays: float inputs are `float32` or `float64` numpy arrays of any layout (strided and
-//! non-contiguous ones included); each is copied once into the tape's owned tensor (a tape
-//! value outlives the call, so it cannot borrow numpy's memory). Outputs are moved into numpy
-//! without a copy. The GIL is released while Rust works (`Python::detach`). Rust errors become
+//! non-contiguous ones included); C-contiguous aligned ones are read in place by the tape
+//! (borrowed leaves, [`autodiff::Tape::var_borrowed`]), others are copied once. Outputs are
+//! moved into numpy without a copy. The GIL is released while Rust works (`Python::detach`). Rust errors become
 //! `tapestry.TapestryError` (a `ValueError`) with the same one-line message as the command
 //! line; wrong shapes raise `ValueError`, wrong dtypes `TypeError`.
 
@@ -35,5 +35,6 @@ fn _tapestry(m: &Bound<'_, PyModule>) -> PyResult<()> {
     scene::register(m)?;
     ops::register(m)?;
     tools::register(m)?;
+    m.add_function(wrap_pyfunction!(array::_reads_in_place, m)?)?;
     Ok(())
 }

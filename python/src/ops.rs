@@ -25,7 +25,9 @@ use render_ops::shade::phong::Surface;
 use render_ops::texture::{Filter, Sampler, Wrap};
 use render_ops::{MethodSettings, Rasterized};
 
-use crate::array::{check_shape, dtype_of, faces as read_faces, floats, to_numpy, with_dtype};
+use crate::array::{
+    check_shape, dtype_of, faces as read_faces, floats, to_numpy, with_dtype, Floats,
+};
 use crate::to_py;
 
 /// Builds an op's outputs from its inputs on a tape.
@@ -35,11 +37,11 @@ pub(crate) type Build<T> = dyn for<'t> Fn(&'t Tape<T>, &[Var<'t, T>]) -> Result<
 
 /// The op's outputs with constant inputs.
 pub(crate) fn forward<T: Real>(
-    inputs: Vec<Tensor<T>>,
+    inputs: Vec<Floats<T>>,
     build: &Build<T>,
 ) -> Result<Vec<Tensor<T>>, String> {
     let tape = Tape::new();
-    let vars: Vec<Var<'_, T>> = inputs.into_iter().map(|x| tape.constant(x)).collect();
+    let vars: Vec<Var<'_, T>> = inputs.iter().map(|x| x.var(&tape, false)).collect();
     let outs = build(&tape, &vars).map_err(|e| e.to_string())?;
     let vals = outs
         .iter()
@@ -52,17 +54,18 @@ pub(crate) fn forward<T: Real>(
 }
 
 /// The gradients of `sum_i <out_i, grads_i>` with respect to the inputs marked in `needs`.
+/// A single output's gradient is copied once (the reverse walk reuses the seed's buffer).
 pub(crate) fn vjp<T: Real>(
-    inputs: Vec<Tensor<T>>,
+    inputs: Vec<Floats<T>>,
     needs: &[bool],
     build: &Build<T>,
-    grads: Vec<Tensor<T>>,
+    grads: Vec<Floats<T>>,
 ) -> Result<Vec<Option<Tensor<T>>>, String> {
     let tape = Tape::new();
     let vars: Vec<Var<'_, T>> = inputs
-        .into_iter()
+        .iter()
         .zip(needs)
-        .map(|(x, &n)| tape.var(x, n))
+        .map(|(x, &n)| x.var(&tape, n))
         .collect();
     let outs = build(&tape, &vars).map_err(|e| e.to_string())?;
     if outs.len() != grads.len() {
@@ -87,11 +90,11 @@ pub(crate) fn vjp<T: Real>(
         }
     }
     let gr = if outs.len() == 1 {
-        tape.vjp(outs[0], grads.into_iter().next().expect("one"))
+        tape.vjp(outs[0], grads[0].to_tensor())
     } else {
         let mut total: Option<Var<'_, T>> = None;
-        for (o, g) in outs.iter().zip(grads) {
-            let term = (*o * tape.constant(g)).sum();
+        for (o, g) in outs.iter().zip(&grads) {
+            let term = (*o * g.var(&tape, false)).sum();
             total = Some(match total {
                 Some(t) => t + term,
                 None => term,
@@ -429,7 +432,7 @@ fn rasterize<'py>(
         let frags = py
             .detach(move || -> Result<_, String> {
                 let tape = Tape::new();
-                let r = render_ops::rasterize(tape.constant(c), f2, &s.raster()).map_err(|e| e.to_string())?;
+                let r = render_ops::rasterize(c.var(&tape, false), f2, &s.raster()).map_err(|e| e.to_string())?;
                 Ok(r.fragments.clone())
             })
             .map_err(to_py)?;
@@ -484,16 +487,18 @@ fn rasterized<'t, T: FragmentsOf>(
 fn bary_input<T: FragmentsOf>(
     fr: &Fragments,
     bary: Option<&Bound<'_, PyAny>>,
-) -> PyResult<Tensor<T>> {
+) -> PyResult<Floats<T>> {
     let f = T::of(fr)?;
     let n = f.face.len();
     match bary {
         Some(b) => floats::<T>("bary", b, &[Some(n), Some(3)], "[N, 3] (N fragments)"),
-        None => Ok(ndarray::ArrayD::from_shape_vec(
-            ndarray::IxDyn(&[n, 3]),
-            f.bary.iter().flatten().copied().collect(),
-        )
-        .expect("n x 3")),
+        None => Ok(Floats::owned(
+            ndarray::ArrayD::from_shape_vec(
+                ndarray::IxDyn(&[n, 3]),
+                f.bary.iter().flatten().copied().collect(),
+            )
+            .expect("n x 3"),
+        )),
     }
 }
 
@@ -686,7 +691,7 @@ fn sh_inputs<T: Element + Real>(
     normal: &Bound<'_, PyAny>,
     albedo: &Bound<'_, PyAny>,
     coeffs: &Bound<'_, PyAny>,
-) -> PyResult<Vec<Tensor<T>>> {
+) -> PyResult<Vec<Floats<T>>> {
     let n = floats::<T>("normal", normal, &[None, Some(3)], "[N, 3]")?;
     let a = floats::<T>("albedo", albedo, &[None, None], "[N, 3]")
         .or_else(|_| floats::<T>("albedo", albedo, &[Some(3)], "[N, 3] or [3]"))?;
@@ -822,7 +827,7 @@ fn phong_inputs<T: Element + Real>(
     shininess: &Bound<'_, PyAny>,
     point_position: Option<&Bound<'_, PyAny>>,
     point_color: Option<&Bound<'_, PyAny>>,
-) -> PyResult<Vec<Tensor<T>>> {
+) -> PyResult<Vec<Floats<T>>> {
     let p = floats::<T>("position", position, &[None, Some(3)], "[N, 3]")?;
     let n = p.shape()[0];
     let nrm = floats::<T>(

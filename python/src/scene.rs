@@ -76,7 +76,7 @@ fn grad_scene<'py>(
             &[None, None, None],
             "[H, W, 3] or [H, W, 4]",
         )?;
-        (t, "array".to_string())
+        (t.to_tensor(), "array".to_string())
     };
     let (loss, g) = py
         .detach(|| {

@@ -35,7 +35,8 @@ fn _fit_face<'py>(
                 img,
                 &[None, None, None],
                 "[H, W, C] float64, C of 1 to 4",
-            )?;
+            )?
+            .to_tensor();
             if !(1..=4).contains(&photo.shape()[2]) {
                 return Err(PyValueError::new_err(format!(
                     "image: shape {:?}, expected [H, W, C] with C of 1 to 4",
@@ -47,7 +48,8 @@ fn _fit_face<'py>(
             }
             let lms = match landmarks {
                 Some(l) => {
-                    let l = floats::<f64>("landmarks", l, &[None, Some(2)], "[N, 2] float64")?;
+                    let l = floats::<f64>("landmarks", l, &[None, Some(2)], "[N, 2] float64")?
+                        .to_tensor();
                     Some(l.into_dimensionality().expect("2-d"))
                 }
                 None => None,

@@ -106,6 +106,27 @@ def test_non_contiguous_inputs():
     assert out.shape == (4, 3) and np.all(out == out[0])
 
 
+def test_contiguous_inputs_are_read_in_place_and_others_copied_once():
+    from tapestry import _tapestry
+    clip, faces, colors = mesh()
+    assert _tapestry._reads_in_place(clip)
+    assert _tapestry._reads_in_place(clip.astype(np.float32))
+    assert _tapestry._reads_in_place(np.zeros((2, 3, 4)))
+    assert not _tapestry._reads_in_place(np.asfortranarray(clip))
+    assert not _tapestry._reads_in_place(clip[::2])
+    assert not _tapestry._reads_in_place(np.broadcast_to(np.ones(3), (4, 3)))
+    # Misaligned memory (a float64 view at a 4-byte offset) is copied, not read in place.
+    raw = np.zeros(clip.size * 8 + 4, np.uint8)[4:].view(np.float64).reshape(clip.shape)
+    raw[...] = clip
+    assert not raw.flags.aligned and not _tapestry._reads_in_place(raw)
+    got = tapestry.render(raw, faces, colors, width=W, height=H)
+    assert np.array_equal(got, tapestry.render(clip, faces, colors, width=W, height=H))
+    # A borrowed input is not written to, and stays usable after the call.
+    before = clip.copy()
+    tapestry.render_vjp(clip, faces, colors, np.ones((H, W, 4)), width=W, height=H)
+    assert np.array_equal(clip, before)
+
+
 def test_outputs_are_writable_numpy_arrays():
     clip, faces, colors = mesh()
     img = tapestry.render(clip, faces, colors, width=W, height=H)

@@ -5,7 +5,7 @@
 use std::mem::MaybeUninit;
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -22,7 +22,7 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
     fn name(&self) -> &'static str {
         "blend_hard"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let col = inputs[0].as_standard_layout();
         let f = &self.fragments;
         let (h, w) = (f.height, f.width);
@@ -54,7 +54,7 @@ impl<T: Real> Op<T> for HardBlendOp<T> {
             ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c")
         ])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
@@ -173,7 +173,11 @@ struct WeightedBlendOp<T: Real> {
 }
 
 impl<T: Real> WeightedBlendOp<T> {
-    fn check(&self, col: &Tensor<T>, weight: &Tensor<T>) -> AdResult<()> {
+    fn check<S: ndarray::Data<Elem = T>>(
+        &self,
+        col: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+        weight: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+    ) -> AdResult<()> {
         let (n, c) = (self.fragments.len(), self.background.len());
         if col.shape() != [n, c] || weight.shape() != [n] {
             return Err(AutodiffError::shape(
@@ -190,8 +194,8 @@ impl<T: Real> Op<T> for WeightedBlendOp<T> {
     fn name(&self) -> &'static str {
         "blend_weighted"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        self.check(inputs[0], inputs[1])?;
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
+        self.check(&inputs[0], &inputs[1])?;
         let col = inputs[0].as_standard_layout();
         let wt = inputs[1].as_standard_layout();
         let (cs, ws) = (col.as_slice().expect("std"), wt.as_slice().expect("std"));
@@ -224,7 +228,7 @@ impl<T: Real> Op<T> for WeightedBlendOp<T> {
             ArrayD::from_shape_vec(IxDyn(&[h, w, c + 1]), img).expect("h w c")
         ])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let f = &self.fragments;
         let (n, c) = (f.len(), self.background.len());
         let col = ctx.inputs[0].as_standard_layout();

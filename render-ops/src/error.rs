@@ -1,6 +1,6 @@
 //! The crate's umbrella error: every failure of a rendering call, typed by where it arose.
 
-use autodiff::{Real, Tensor};
+use autodiff::Real;
 use ndarray::Dimension;
 use thiserror::Error;
 
@@ -55,7 +55,10 @@ pub enum RenderError {
 impl RenderError {
     /// `Ok` when every value of `t` is finite, else [`RenderError::NonFiniteInput`] naming
     /// `input` and the first bad element.
-    pub fn check_finite<T: Real>(input: &'static str, t: &Tensor<T>) -> Result<(), RenderError> {
+    pub fn check_finite<T: Real, S: ndarray::Data<Elem = T>>(
+        input: &'static str,
+        t: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+    ) -> Result<(), RenderError> {
         match t.indexed_iter().find(|(_, x)| !x.is_finite()) {
             None => Ok(()),
             Some((i, x)) => Err(RenderError::NonFiniteInput {

@@ -6,7 +6,7 @@
 use std::mem::MaybeUninit;
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -26,7 +26,7 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
     fn name(&self) -> &'static str {
         "interpolate"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let (attr, bary) = (
             inputs[0].as_standard_layout(),
             inputs[1].as_standard_layout(),
@@ -57,7 +57,7 @@ impl<T: Real> Op<T> for InterpolateOp<T> {
             ArrayD::from_shape_vec(IxDyn(&[n, c]), out).expect("n x c")
         ])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let attr = ctx.inputs[0].as_standard_layout();
         let bary = ctx.inputs[1].as_standard_layout();
         let g = ctx.grad_outputs[0].as_standard_layout();

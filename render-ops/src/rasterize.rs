@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -27,7 +27,9 @@ pub struct Rasterized<'t, T: Real> {
 }
 
 /// Copies a [V, 4] tensor into per-vertex arrays.
-pub fn clip_rows<T: Real>(clip: &Tensor<T>) -> Result<Vec<[T; 4]>, RenderError> {
+pub fn clip_rows<T: Real, S: ndarray::Data<Elem = T>>(
+    clip: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+) -> Result<Vec<[T; 4]>, RenderError> {
     if clip.ndim() != 2 || clip.shape()[1] != 4 {
         return Err(AutodiffError::shape(
             "rasterize",
@@ -58,7 +60,7 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
     fn name(&self) -> &'static str {
         "rasterize"
     }
-    fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, _inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let f = &self.fragments;
         let n = f.face.len();
         // The three copies in one parallel region (they are the op's only work).
@@ -71,11 +73,11 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
         let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), vdepth).expect("n");
         Ok(vec![bary, depth, vdepth])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let clip = clip_rows(ctx.inputs[0]).map_err(|e| AutodiffError::Op {
+        let clip = clip_rows(&ctx.inputs[0]).map_err(|e| AutodiffError::Op {
             op: "rasterize",
             detail: e.to_string(),
         })?;
@@ -108,7 +110,7 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
 }
 
 /// The output gradient `i` of an op's backward as `f64` values in standard order.
-pub(crate) fn grad_output_f64<T: Real>(ctx: &BackwardCtx<'_, T>, i: usize) -> Vec<f64> {
+pub(crate) fn grad_output_f64<T: Real>(ctx: &BackwardCtx<'_, '_, T>, i: usize) -> Vec<f64> {
     ctx.grad_outputs[i]
         .as_standard_layout()
         .iter()

@@ -36,7 +36,7 @@
 use std::path::Path;
 
 use autodiff::{
-    tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, Var,
+    tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, TensorView, Var,
 };
 use ndarray::{ArrayD, CowArray, IxDyn};
 use rayon::prelude::*;
@@ -510,7 +510,7 @@ impl<T: Real> TextureOp<T> {
 
 /// The inputs in standard (row-major contiguous) layout, borrowed when they already are (the
 /// usual case: no copy of the texture per call).
-fn std_inputs<'a, T: Real>(inputs: &[&'a Tensor<T>]) -> Vec<CowArray<'a, T, IxDyn>> {
+fn std_inputs<'a, T: Real>(inputs: &'a [TensorView<'_, T>]) -> Vec<CowArray<'a, T, IxDyn>> {
     inputs.iter().map(|t| t.as_standard_layout()).collect()
 }
 
@@ -523,7 +523,7 @@ impl<T: Real> Op<T> for TextureOp<T> {
         }
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let ins = std_inputs(inputs);
         self.check(&ins)?;
         let ts = ins[0].shape();
@@ -565,7 +565,7 @@ impl<T: Real> Op<T> for TextureOp<T> {
         ])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let ins = std_inputs(ctx.inputs);
         let ts = ins[0].shape().to_vec();
         let c = ts[2];

@@ -7,7 +7,7 @@
 //! near zero, so the identity rotation (where face fitting starts) has exact, finite
 //! gradients; composing it from `sqrt`, `sin`, `/` would give NaN at zero.
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result, Tape, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result, Tape, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -58,8 +58,8 @@ impl<T: Real> Op<T> for AxisAngleOp {
     fn name(&self) -> &'static str {
         "axis_angle_to_matrix"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let r = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let r = &inputs[0];
         if r.shape() != [3] {
             return Err(AutodiffError::shape(
                 "axis_angle_to_matrix",
@@ -78,11 +78,11 @@ impl<T: Real> Op<T> for AxisAngleOp {
         });
         Ok(vec![m])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let r = ctx.inputs[0];
+        let r = &ctx.inputs[0];
         let g = ctx.grad_outputs[0];
         let rv = [r[0].to_f64c(), r[1].to_f64c(), r[2].to_f64c()];
         let t2 = rv.iter().map(|v| v * v).sum::<f64>();
@@ -200,7 +200,7 @@ impl<T: Real> Op<T> for ClipOp {
     fn name(&self) -> &'static str {
         "to_clip"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
         let p = inputs[0].as_standard_layout();
         if p.ndim() != 2 || p.shape()[1] != 3 {
             return Err(AutodiffError::shape(
@@ -227,7 +227,7 @@ impl<T: Real> Op<T> for ClipOp {
             ArrayD::from_shape_vec(IxDyn(&[n, 4]), out).expect("n x 4")
         ])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }

@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use tapestry::autodiff::{BackwardCtx, Op, Result as AdResult, Tape, Tensor};
+use tapestry::autodiff::{BackwardCtx, Op, Result as AdResult, Tape, Tensor, TensorView};
 use tapestry::render_ops::check::scene::{check_scene, SceneCheckOptions, SceneInput};
 use tapestry::render_ops::check::{check_image_gradient, cosine_rel_l2, pipeline, CheckOptions};
 use tapestry::render_ops::mesh::Mesh;
@@ -146,10 +146,10 @@ impl Op<f64> for ScaleColors {
     fn name(&self) -> &'static str {
         "scale_colors (wrong backward)"
     }
-    fn forward(&mut self, inputs: &[&Tensor<f64>]) -> AdResult<Vec<Tensor<f64>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, f64>]) -> AdResult<Vec<Tensor<f64>>> {
         Ok(vec![inputs[0].mapv(|x| 0.8 * x)])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, f64>) -> AdResult<Vec<Option<Tensor<f64>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, f64>) -> AdResult<Vec<Option<Tensor<f64>>>> {
         Ok(vec![Some(ctx.grad_outputs[0].mapv(|g| 1.2 * g))])
     }
 }

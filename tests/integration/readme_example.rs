@@ -2,7 +2,7 @@
 //! backward, run through the finite-difference gradient checker.
 
 use tapestry::autodiff::gradcheck::{gradcheck, GradcheckOptions};
-use tapestry::autodiff::{BackwardCtx, Op, Real, Result, Tape, Tensor, Var};
+use tapestry::autodiff::{BackwardCtx, Op, Real, Result, Tape, Tensor, TensorView, Var};
 
 /// `y = softplus(x) = ln(1 + e^x)`, computed stably, with its own backward `g * sigmoid(x)`.
 struct Softplus;
@@ -11,12 +11,12 @@ impl<T: Real> Op<T> for Softplus {
     fn name(&self) -> &'static str {
         "softplus"
     }
-    fn forward(&mut self, x: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+    fn forward(&mut self, x: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
         Ok(vec![
             x[0].mapv(|v| v.max(T::zero()) + (-v.abs()).exp().ln_1p())
         ])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let g = ctx.grad_outputs[0] * &ctx.inputs[0].mapv(|v| T::one() / (T::one() + (-v).exp()));
         Ok(vec![ctx.needs_grad[0].then_some(g)])
     }

@@ -9,7 +9,9 @@ use ndarray::{ArrayD, Dimension, IxDyn};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{broadcast_shapes, map1, map1_fast, map2, sum_to_shape, GradArg, Tensor};
+use crate::tensor::{
+    broadcast_shapes, map1, map1_fast, map2, sum_to_shape, GradArg, Tensor, TensorView,
+};
 use crate::Real;
 
 /// Unary elementwise kinds; some carry a scalar parameter.
@@ -101,8 +103,8 @@ impl<T: Real> Op<T> for UnaryOp<T> {
         self.0.name()
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         let z = T::zero();
         let y = match self.0 {
             Unary::Neg => map1(x, |v| -v),
@@ -147,17 +149,17 @@ impl<T: Real> Op<T> for UnaryOp<T> {
         Ok(vec![y])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
         let g = GradArg::Borrowed(ctx.grad_outputs[0]);
-        Ok(vec![Some(self.grad(g, ctx.inputs[0], ctx.outputs[0]))])
+        Ok(vec![Some(self.grad(g, &ctx.inputs[0], ctx.outputs[0]))])
     }
 
     fn backward_owned(
         &self,
-        inputs: &[&Tensor<T>],
+        inputs: &[TensorView<'_, T>],
         outputs: &[&Tensor<T>],
         needs_grad: &[bool],
         grad_output: Tensor<T>,
@@ -166,13 +168,13 @@ impl<T: Real> Op<T> for UnaryOp<T> {
             return Ok(vec![None]);
         }
         let g = GradArg::Owned(grad_output);
-        Ok(vec![Some(self.grad(g, inputs[0], outputs[0]))])
+        Ok(vec![Some(self.grad(g, &inputs[0], outputs[0]))])
     }
 }
 
 impl<T: Real> UnaryOp<T> {
     /// The input's gradient from the output's gradient `g` (in `g`'s buffer when owned).
-    fn grad(&self, g: GradArg<'_, T>, x: &Tensor<T>, y: &Tensor<T>) -> Tensor<T> {
+    fn grad(&self, g: GradArg<'_, T>, x: &TensorView<'_, T>, y: &Tensor<T>) -> Tensor<T> {
         let (x, y) = (x.view(), y.view());
         let (z, one, two) = (T::zero(), T::one(), T::one() + T::one());
         match self.0 {
@@ -248,7 +250,7 @@ impl Binary {
 }
 
 /// `x` broadcast to `shape` (a plain view when it already has that shape).
-fn bview<'a, T: Real>(x: &'a Tensor<T>, shape: &[usize]) -> ndarray::ArrayViewD<'a, T> {
+fn bview<'a, T: Real>(x: &'a TensorView<'_, T>, shape: &[usize]) -> ndarray::ArrayViewD<'a, T> {
     if x.shape() == shape {
         x.view()
     } else {
@@ -264,8 +266,8 @@ impl<T: Real> Op<T> for BinaryOp {
         self.0.name()
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let (a, b) = (inputs[0], inputs[1]);
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let (a, b) = (&inputs[0], &inputs[1]);
         let (av, bv) = if a.shape() == b.shape() {
             (a.view(), b.view())
         } else {
@@ -305,14 +307,14 @@ impl<T: Real> Op<T> for BinaryOp {
         Ok(vec![y])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let g = GradArg::Borrowed(ctx.grad_outputs[0]);
         Ok(self.grads(g, ctx.inputs, ctx.needs_grad))
     }
 
     fn backward_owned(
         &self,
-        inputs: &[&Tensor<T>],
+        inputs: &[TensorView<'_, T>],
         _outputs: &[&Tensor<T>],
         needs_grad: &[bool],
         grad_output: Tensor<T>,
@@ -327,10 +329,10 @@ impl BinaryOp {
     fn grads<T: Real>(
         &self,
         g: GradArg<'_, T>,
-        inputs: &[&Tensor<T>],
+        inputs: &[TensorView<'_, T>],
         needs_grad: &[bool],
     ) -> Vec<Option<Tensor<T>>> {
-        let (a, b) = (inputs[0], inputs[1]);
+        let (a, b) = (&inputs[0], &inputs[1]);
         let dim = g.get().raw_dim();
         let shape = dim.slice();
         let (av, bv) = (bview(a, shape), bview(b, shape));
@@ -411,31 +413,31 @@ impl<T: Real> Op<T> for MulSelfOp {
         "mul"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
         let x = inputs[0].view();
         Ok(vec![map2(&x, &x, |x, y| x * y)])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let g = GradArg::Borrowed(ctx.grad_outputs[0]);
         Ok(vec![
-            ctx.needs_grad[0].then(|| mul_self_grad(g, ctx.inputs[0]))
+            ctx.needs_grad[0].then(|| mul_self_grad(g, &ctx.inputs[0]))
         ])
     }
 
     fn backward_owned(
         &self,
-        inputs: &[&Tensor<T>],
+        inputs: &[TensorView<'_, T>],
         _outputs: &[&Tensor<T>],
         needs_grad: &[bool],
         grad_output: Tensor<T>,
     ) -> Result<Vec<Option<Tensor<T>>>> {
         let g = GradArg::Owned(grad_output);
-        Ok(vec![needs_grad[0].then(|| mul_self_grad(g, inputs[0]))])
+        Ok(vec![needs_grad[0].then(|| mul_self_grad(g, &inputs[0]))])
     }
 }
 
-fn mul_self_grad<T: Real>(g: GradArg<'_, T>, x: &Tensor<T>) -> Tensor<T> {
+fn mul_self_grad<T: Real>(g: GradArg<'_, T>, x: &TensorView<'_, T>) -> Tensor<T> {
     g.map2(&x.view(), |g, x| {
         let t = g * x;
         t + t
@@ -453,8 +455,8 @@ impl<T: Real> Op<T> for WhereOp {
         "where"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let (a, b) = (inputs[0], inputs[1]);
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let (a, b) = (&inputs[0], &inputs[1]);
         let s = broadcast_shapes("where", a.shape(), b.shape())?;
         let s = broadcast_shapes("where", &s, self.mask.shape()).map_err(|_| {
             AutodiffError::shape(
@@ -473,7 +475,7 @@ impl<T: Real> Op<T> for WhereOp {
         Ok(vec![y])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let g = ctx.grad_outputs[0];
         let m = self.mask.broadcast(IxDyn(g.shape())).expect("checked");
         let z = T::zero();
@@ -536,16 +538,16 @@ mod tests {
             ];
             for k in kinds {
                 let mut op = UnaryOp(k);
-                let y = op.forward(&[&x]).unwrap().remove(0);
+                let y = op.forward(&[x.view()]).unwrap().remove(0);
                 let ctx = BackwardCtx {
-                    inputs: &[&x],
+                    inputs: &[x.view()],
                     outputs: &[&y],
                     grad_outputs: &[&g],
                     needs_grad: &[true],
                 };
                 let want = op.backward(&ctx).unwrap().remove(0).unwrap();
                 let got = op
-                    .backward_owned(&[&x], &[&y], &[true], g.clone())
+                    .backward_owned(&[x.view()], &[&y], &[true], g.clone())
                     .unwrap()
                     .remove(0)
                     .unwrap();
@@ -562,17 +564,19 @@ mod tests {
             ] {
                 let a = x.mapv(f32::abs);
                 let mut op = BinaryOp(k);
-                let y = Op::<f32>::forward(&mut op, &[&a, &b]).unwrap().remove(0);
+                let y = Op::<f32>::forward(&mut op, &[a.view(), b.view()])
+                    .unwrap()
+                    .remove(0);
                 for needs in [[true, true], [true, false], [false, true]] {
                     let ctx = BackwardCtx {
-                        inputs: &[&a, &b],
+                        inputs: &[a.view(), b.view()],
                         outputs: &[&y],
                         grad_outputs: &[&g],
                         needs_grad: &needs,
                     };
                     let want = op.backward(&ctx).unwrap();
                     let got = op
-                        .backward_owned(&[&a, &b], &[&y], &needs, g.clone())
+                        .backward_owned(&[a.view(), b.view()], &[&y], &needs, g.clone())
                         .unwrap();
                     for (w, o) in want.iter().zip(&got) {
                         assert_eq!(w.as_ref().map(bits), o.as_ref().map(bits), "{}", k.name());

@@ -6,7 +6,7 @@ use ndarray::{ArrayD, Axis, IxDyn};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{into_standard, Tensor};
+use crate::tensor::{into_standard, Tensor, TensorView};
 use crate::Real;
 
 /// Rows (sub-tensors along `axis`) picked by `indices`, repeats allowed.
@@ -21,8 +21,8 @@ impl<T: Real> Op<T> for IndexSelectOp {
     fn name(&self) -> &'static str {
         "index_select"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         if self.axis >= x.ndim() {
             return Err(AutodiffError::index(
                 "index_select",
@@ -60,7 +60,7 @@ impl<T: Real> Op<T> for IndexSelectOp {
             x.select(Axis(self.axis), &self.indices),
         )])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
@@ -134,8 +134,8 @@ impl<T: Real> Op<T> for GatherOp {
     fn name(&self) -> &'static str {
         "gather"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         let size = *x.shape().get(self.axis).unwrap_or(&0);
         check_index(
             "gather",
@@ -155,7 +155,7 @@ impl<T: Real> Op<T> for GatherOp {
         });
         Ok(vec![y])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
@@ -165,7 +165,12 @@ impl<T: Real> Op<T> for GatherOp {
     }
 }
 
-fn scatter_into<T: Real>(dst: &mut Tensor<T>, axis: usize, index: &ArrayD<usize>, src: &Tensor<T>) {
+fn scatter_into<T: Real, S: ndarray::Data<Elem = T>>(
+    dst: &mut Tensor<T>,
+    axis: usize,
+    index: &ArrayD<usize>,
+    src: &ndarray::ArrayBase<S, IxDyn>,
+) {
     let mut at = vec![0usize; dst.ndim()];
     for (pos, &i) in index.indexed_iter() {
         for d in 0..at.len() {
@@ -191,8 +196,8 @@ impl<T: Real> Op<T> for ScatterAddOp {
     fn name(&self) -> &'static str {
         "scatter_add"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let src = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let src = &inputs[0];
         if self.index.shape() != src.shape() {
             return Err(AutodiffError::shape(
                 "scatter_add",
@@ -221,7 +226,7 @@ impl<T: Real> Op<T> for ScatterAddOp {
         scatter_into(&mut y, self.axis, &self.index, src);
         Ok(vec![y])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{scalar, Tensor};
+use crate::tensor::{scalar, Tensor, TensorView};
 use crate::Real;
 
 const ROW_BLOCK: usize = 256;
@@ -175,10 +175,10 @@ fn mm_err(a: &[usize], b: &[usize], why: &str) -> AutodiffError {
     AutodiffError::shape("matmul", &[a, b], why.to_string())
 }
 
-fn as2<T: Real>(t: &Tensor<T>) -> ArrayView2<'_, T> {
+fn as2<T: Real, S: ndarray::Data<Elem = T>>(t: &ndarray::ArrayBase<S, IxDyn>) -> ArrayView2<'_, T> {
     t.view().into_dimensionality::<Ix2>().expect("2-d")
 }
-fn as1<T: Real>(t: &Tensor<T>) -> ArrayView1<'_, T> {
+fn as1<T: Real, S: ndarray::Data<Elem = T>>(t: &ndarray::ArrayBase<S, IxDyn>) -> ArrayView1<'_, T> {
     t.view().into_dimensionality::<Ix1>().expect("1-d")
 }
 
@@ -207,8 +207,8 @@ impl<T: Real> Op<T> for MatMulOp {
         "matmul"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let (a, b) = (inputs[0], inputs[1]);
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let (a, b) = (&inputs[0], &inputs[1]);
         let shape = matmul_shape(a.shape(), b.shape())?;
         let y: Tensor<T> = match (a.ndim(), b.ndim()) {
             (1, 1) => scalar(as1(a).dot(&as1(b))),
@@ -238,8 +238,8 @@ impl<T: Real> Op<T> for MatMulOp {
         Ok(vec![y])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
-        let (a, b, g) = (ctx.inputs[0], ctx.inputs[1], ctx.grad_outputs[0]);
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+        let (a, b, g) = (&ctx.inputs[0], &ctx.inputs[1], ctx.grad_outputs[0]);
         let (na, nb) = (ctx.needs_grad[0], ctx.needs_grad[1]);
         let out = match (a.ndim(), b.ndim()) {
             (1, 1) => {

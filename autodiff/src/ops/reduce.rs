@@ -7,7 +7,8 @@ use rayon::prelude::*;
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
 use crate::tensor::{
-    full, map1, map2, scalar, sum_all_det, sum_axis_det, Tensor, PAR_MIN_LEN, REDUCE_CHUNK,
+    full, map1, map2, scalar, sum_all_det, sum_axis_det, Tensor, TensorView, PAR_MIN_LEN,
+    REDUCE_CHUNK,
 };
 use crate::Real;
 
@@ -91,8 +92,8 @@ impl<T: Real> Op<T> for SumOp {
         }
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         let name = <Self as Op<T>>::name(self);
         self.resolved = match &self.axes {
             Some(a) => check_axes(name, x.shape(), a)?,
@@ -108,7 +109,7 @@ impl<T: Real> Op<T> for SumOp {
             )))
             .expect("one element")
         } else {
-            let mut y = x.clone();
+            let mut y = x.to_owned();
             for &a in self.resolved.iter().rev() {
                 y = sum_axis_det(&y.view(), a);
             }
@@ -126,7 +127,7 @@ impl<T: Real> Op<T> for SumOp {
         Ok(vec![y])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
@@ -178,8 +179,8 @@ impl<T: Real> Op<T> for MaxOp {
         "max"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         check_axes("max", x.shape(), &[self.axis])?;
         if x.shape()[self.axis] == 0 {
             return Err(AutodiffError::shape(
@@ -214,11 +215,11 @@ impl<T: Real> Op<T> for MaxOp {
         Ok(vec![y])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let x = ctx.inputs[0];
+        let x = &ctx.inputs[0];
         let ax = Axis(self.axis);
         let mut g_in = ArrayD::<T>::zeros(x.raw_dim());
         let g = if self.keepdim {
@@ -247,8 +248,8 @@ impl<T: Real> Op<T> for LogSumExpOp {
         "logsumexp"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         check_axes("logsumexp", x.shape(), &[self.axis])?;
         let ax = Axis(self.axis);
         let mut y = ArrayD::<T>::zeros(IxDyn(&reduced_shape(x.shape(), &[self.axis], false)));
@@ -273,11 +274,11 @@ impl<T: Real> Op<T> for LogSumExpOp {
         Ok(vec![y])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let x = ctx.inputs[0];
+        let x = &ctx.inputs[0];
         let ax = Axis(self.axis);
         let (y, g) = if self.keepdim {
             (
@@ -344,8 +345,8 @@ impl<T: Real> Op<T> for SumSquaredDiffOp {
         "sum_squared_diff"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let (a, b) = (inputs[0], inputs[1]);
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let (a, b) = (&inputs[0], &inputs[1]);
         if a.shape() != b.shape() {
             return Err(AutodiffError::shape(
                 "sum_squared_diff",
@@ -369,7 +370,7 @@ impl<T: Real> Op<T> for SumSquaredDiffOp {
         Ok(vec![scalar(s)])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] && !ctx.needs_grad[1] {
             return Ok(vec![None, None]);
         }

@@ -4,7 +4,7 @@ use ndarray::{ArrayD, Axis, IxDyn, Slice};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{broadcast_shapes, into_standard, sum_to_shape, Tensor};
+use crate::tensor::{broadcast_shapes, into_standard, sum_to_shape, Tensor, TensorView};
 use crate::Real;
 
 /// Reshape to a new shape with the same number of elements (row-major order).
@@ -14,8 +14,8 @@ impl<T: Real> Op<T> for ReshapeOp {
     fn name(&self) -> &'static str {
         "reshape"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         let n: usize = self.0.iter().product();
         if n != x.len() {
             return Err(AutodiffError::shape(
@@ -31,7 +31,7 @@ impl<T: Real> Op<T> for ReshapeOp {
             .expect("count checked");
         Ok(vec![y])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         Ok(vec![ctx.needs_grad[0].then(|| {
             ctx.grad_outputs[0]
                 .as_standard_layout()
@@ -76,8 +76,8 @@ impl<T: Real> Op<T> for PermuteOp {
     fn name(&self) -> &'static str {
         "permute"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         check_perm("permute", x.shape(), &self.0)?;
         let y = x
             .view()
@@ -86,7 +86,7 @@ impl<T: Real> Op<T> for PermuteOp {
             .into_owned();
         Ok(vec![y])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let mut inv = vec![0; self.0.len()];
         for (i, &p) in self.0.iter().enumerate() {
             inv[p] = i;
@@ -115,8 +115,8 @@ impl<T: Real> Op<T> for SliceOp {
     fn name(&self) -> &'static str {
         "slice"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         if self.axis >= x.ndim() || self.start > self.end || self.end > x.shape()[self.axis] {
             return Err(AutodiffError::index(
                 "slice",
@@ -129,7 +129,7 @@ impl<T: Real> Op<T> for SliceOp {
             .to_owned();
         Ok(vec![y])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         Ok(vec![ctx.needs_grad[0].then(|| {
             let mut g = ArrayD::<T>::zeros(ctx.inputs[0].raw_dim());
             g.slice_axis_mut(Axis(self.axis), Slice::from(self.start..self.end))
@@ -145,7 +145,7 @@ pub struct ConcatOp(pub usize);
 /// Concatenation of standard-layout tensors along `ax` as row copies: for each index of the
 /// axes before `ax`, each input's contiguous block in turn. `None` when an input is not in
 /// standard layout or the shapes differ off `ax` (the general path handles and reports those).
-fn concat_standard<T: Real>(inputs: &[&Tensor<T>], ax: usize) -> Option<Tensor<T>> {
+fn concat_standard<T: Real>(inputs: &[TensorView<'_, T>], ax: usize) -> Option<Tensor<T>> {
     let first = inputs[0].shape();
     let outer: usize = first[..ax].iter().product();
     let mut shape = first.to_vec();
@@ -175,7 +175,7 @@ impl<T: Real> Op<T> for ConcatOp {
     fn name(&self) -> &'static str {
         "concat"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
         let shapes: Vec<&[usize]> = inputs.iter().map(|t| t.shape()).collect();
         if inputs.is_empty() {
             return Err(AutodiffError::invalid("concat", "no inputs"));
@@ -201,7 +201,7 @@ impl<T: Real> Op<T> for ConcatOp {
                 )
             })
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let g = ctx.grad_outputs[0];
         let mut at = 0;
         Ok(ctx
@@ -228,7 +228,7 @@ impl<T: Real> Op<T> for StackOp {
     fn name(&self) -> &'static str {
         "stack"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
         let shapes: Vec<&[usize]> = inputs.iter().map(|t| t.shape()).collect();
         if inputs.is_empty() {
             return Err(AutodiffError::invalid("stack", "no inputs"));
@@ -245,7 +245,7 @@ impl<T: Real> Op<T> for StackOp {
             .map(|y| vec![into_standard(y)])
             .map_err(|_| AutodiffError::shape("stack", &shapes, "stack needs equal shapes"))
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let g = ctx.grad_outputs[0];
         Ok(ctx
             .needs_grad
@@ -263,8 +263,8 @@ impl<T: Real> Op<T> for BroadcastToOp {
     fn name(&self) -> &'static str {
         "broadcast_to"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         let s = broadcast_shapes("broadcast_to", x.shape(), &self.0)?;
         if s != self.0 {
             return Err(AutodiffError::shape(
@@ -278,7 +278,7 @@ impl<T: Real> Op<T> for BroadcastToOp {
             .expect("checked")
             .to_owned()])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         Ok(vec![ctx.needs_grad[0].then(|| {
             sum_to_shape(ctx.grad_outputs[0].clone(), ctx.inputs[0].shape())
         })])

@@ -5,7 +5,7 @@ use ndarray::{Axis, IxDyn, Zip};
 
 use crate::error::{AutodiffError, Result};
 use crate::tape::{BackwardCtx, Op};
-use crate::tensor::{broadcast_shapes, sum_to_shape, Tensor};
+use crate::tensor::{broadcast_shapes, sum_to_shape, Tensor, TensorView};
 use crate::Real;
 
 /// Cross product along the last axis (size 3), with broadcasting of the other axes.
@@ -19,7 +19,11 @@ fn cross3<T: Real>(a: [T; 3], b: [T; 3]) -> [T; 3] {
     ]
 }
 
-fn lanes_cross<T: Real>(a: &Tensor<T>, b: &Tensor<T>, shape: &[usize]) -> Tensor<T> {
+fn lanes_cross<T: Real, A: ndarray::Data<Elem = T>, B: ndarray::Data<Elem = T>>(
+    a: &ndarray::ArrayBase<A, IxDyn>,
+    b: &ndarray::ArrayBase<B, IxDyn>,
+    shape: &[usize],
+) -> Tensor<T> {
     let av = a.broadcast(IxDyn(shape)).expect("checked");
     let bv = b.broadcast(IxDyn(shape)).expect("checked");
     let mut y = Tensor::<T>::zeros(IxDyn(shape));
@@ -40,8 +44,8 @@ impl<T: Real> Op<T> for CrossOp {
     fn name(&self) -> &'static str {
         "cross"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let (a, b) = (inputs[0], inputs[1]);
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let (a, b) = (&inputs[0], &inputs[1]);
         if a.shape().last() != Some(&3) || b.shape().last() != Some(&3) {
             return Err(AutodiffError::shape(
                 "cross",
@@ -52,8 +56,8 @@ impl<T: Real> Op<T> for CrossOp {
         let shape = broadcast_shapes("cross", a.shape(), b.shape())?;
         Ok(vec![lanes_cross(a, b, &shape)])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
-        let (a, b, g) = (ctx.inputs[0], ctx.inputs[1], ctx.grad_outputs[0]);
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+        let (a, b, g) = (&ctx.inputs[0], &ctx.inputs[1], ctx.grad_outputs[0]);
         let shape = g.shape();
         // d(a x b) with upstream g: ga = b x g, gb = g x a.
         Ok(vec![
@@ -74,8 +78,8 @@ impl<T: Real> Op<T> for NormalizeOp<T> {
     fn name(&self) -> &'static str {
         "normalize"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let x = inputs[0];
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let x = &inputs[0];
         if self.eps.is_nan() || self.eps <= T::zero() {
             return Err(AutodiffError::invalid(
                 "normalize",
@@ -103,11 +107,11 @@ impl<T: Real> Op<T> for NormalizeOp<T> {
         }
         Ok(vec![y])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let (x, y, g) = (ctx.inputs[0], ctx.outputs[0], ctx.grad_outputs[0]);
+        let (x, y, g) = (&ctx.inputs[0], ctx.outputs[0], ctx.grad_outputs[0]);
         let ax = Axis(x.ndim() - 1);
         let mut gx = Tensor::<T>::zeros(x.raw_dim());
         Zip::from(gx.lanes_mut(ax))

@@ -11,7 +11,7 @@
 use autodiff::gradcheck::{compare_precision, gradcheck, GradcheckOptions, Mode};
 use autodiff::ndarray::{arr1, ArrayD, IxDyn, Zip};
 use autodiff::rng::Rng;
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result, Tape, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result, Tape, Tensor, TensorView, Var};
 
 /// `softplus_t(x, tau)`: `x` any shape, `tau` a 0-d positive temperature.
 struct SoftplusT<T: Real> {
@@ -40,8 +40,8 @@ impl<T: Real> Op<T> for SoftplusT<T> {
         "softplus_t"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        let (x, tau) = (inputs[0], inputs[1]);
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        let (x, tau) = (&inputs[0], &inputs[1]);
         if tau.ndim() != 0 {
             return Err(AutodiffError::shape(
                 "softplus_t",
@@ -66,12 +66,12 @@ impl<T: Real> Op<T> for SoftplusT<T> {
         Ok(out)
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         let s = self.cache.as_ref().ok_or(AutodiffError::Op {
             op: "softplus_t",
             detail: "backward before forward".into(),
         })?;
-        let (x, tau) = (ctx.inputs[0], ctx.inputs[1][[]]);
+        let (x, tau) = (&ctx.inputs[0], ctx.inputs[1][[]]);
         let (y, gy) = (ctx.outputs[0], ctx.grad_outputs[0]);
         let gs = self.with_sigmoid.then(|| ctx.grad_outputs[1]);
         let one = T::one();

@@ -9,7 +9,7 @@
 use autodiff::ndarray::{arr1, ArrayD, IxDyn};
 use autodiff::optim::{Adam, Sgd};
 use autodiff::rng::Rng;
-use autodiff::{AutodiffError, BackwardCtx, Op, Result, Tape, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Result, Tape, Tensor, TensorView, Var};
 
 fn zeros(shape: &[usize]) -> Tensor<f64> {
     ArrayD::zeros(IxDyn(shape))
@@ -338,10 +338,10 @@ impl Op<f64> for Broken {
     fn name(&self) -> &'static str {
         "broken"
     }
-    fn forward(&mut self, x: &[&Tensor<f64>]) -> Result<Vec<Tensor<f64>>> {
-        Ok(vec![x[0].clone(); self.outputs])
+    fn forward(&mut self, x: &[TensorView<'_, f64>]) -> Result<Vec<Tensor<f64>>> {
+        Ok(vec![x[0].to_owned(); self.outputs])
     }
-    fn backward(&self, _: &BackwardCtx<'_, f64>) -> Result<Vec<Option<Tensor<f64>>>> {
+    fn backward(&self, _: &BackwardCtx<'_, '_, f64>) -> Result<Vec<Option<Tensor<f64>>>> {
         Ok(vec![Some(zeros(&self.grad_shape)); self.grads])
     }
 }

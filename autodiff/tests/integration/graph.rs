@@ -14,7 +14,7 @@ use autodiff::gradcheck::{gradcheck, GradcheckOptions, Mode};
 use autodiff::ndarray::{arr1, arr2, ArrayD, IxDyn};
 use autodiff::rng::Rng;
 use autodiff::tensor::{from_vec, sum_to_shape};
-use autodiff::{AutodiffError, BackwardCtx, Op, Pass, Real, Result, Tape, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Pass, Real, Result, Tape, Tensor, TensorView, Var};
 
 fn t1(v: &[f64]) -> Tensor<f64> {
     arr1(v).into_dyn()
@@ -174,14 +174,14 @@ impl Op<f64> for SinCos {
     fn name(&self) -> &'static str {
         "sincos"
     }
-    fn forward(&mut self, x: &[&Tensor<f64>]) -> Result<Vec<Tensor<f64>>> {
+    fn forward(&mut self, x: &[TensorView<'_, f64>]) -> Result<Vec<Tensor<f64>>> {
         Ok(vec![x[0].mapv(f64::sin), x[0].mapv(f64::cos)])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, f64>) -> Result<Vec<Option<Tensor<f64>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, f64>) -> Result<Vec<Option<Tensor<f64>>>> {
         self.seen
             .borrow_mut()
             .push(ctx.grad_outputs.iter().map(|g| (*g).clone()).collect());
-        let x = ctx.inputs[0];
+        let x = &ctx.inputs[0];
         let g = ctx.grad_outputs[0] * &x.mapv(f64::cos) - ctx.grad_outputs[1] * &x.mapv(f64::sin);
         Ok(vec![Some(g)])
     }
@@ -243,17 +243,17 @@ impl Op<f64> for Probe {
     fn name(&self) -> &'static str {
         "probe"
     }
-    fn forward(&mut self, x: &[&Tensor<f64>]) -> Result<Vec<Tensor<f64>>> {
-        Ok(vec![x[0] * x[1]])
+    fn forward(&mut self, x: &[TensorView<'_, f64>]) -> Result<Vec<Tensor<f64>>> {
+        Ok(vec![&x[0] * &x[1]])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, f64>) -> Result<Vec<Option<Tensor<f64>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, f64>) -> Result<Vec<Option<Tensor<f64>>>> {
         self.log.borrow_mut().push(ctx.needs_grad.to_vec());
         let g = ctx.grad_outputs[0];
         let mut out = vec![None, None];
         for k in 0..2 {
             if ctx.needs_grad[k] {
                 self.work.borrow_mut()[k] += 1;
-                out[k] = Some(g * ctx.inputs[1 - k]);
+                out[k] = Some(g * &ctx.inputs[1 - k]);
             }
         }
         Ok(out)
@@ -322,11 +322,11 @@ impl Op<f64> for WrongSin {
     fn name(&self) -> &'static str {
         "wrong_sin"
     }
-    fn forward(&mut self, x: &[&Tensor<f64>]) -> Result<Vec<Tensor<f64>>> {
-        Ok(vec![&x[0].mapv(f64::sin) * x[1]])
+    fn forward(&mut self, x: &[TensorView<'_, f64>]) -> Result<Vec<Tensor<f64>>> {
+        Ok(vec![&x[0].mapv(f64::sin) * &x[1]])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, f64>) -> Result<Vec<Option<Tensor<f64>>>> {
-        let (x, w, g) = (ctx.inputs[0], ctx.inputs[1], ctx.grad_outputs[0]);
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, f64>) -> Result<Vec<Option<Tensor<f64>>>> {
+        let (x, w, g) = (&ctx.inputs[0], &ctx.inputs[1], ctx.grad_outputs[0]);
         let gx = g * &x.mapv(f64::cos) * w * (1.0 + self.bias);
         let gw = sum_to_shape(g * &x.mapv(f64::sin), w.shape());
         Ok(vec![Some(gx), Some(gw)])
@@ -403,10 +403,10 @@ impl<T: Real> Op<T> for NanBackward {
     fn name(&self) -> &'static str {
         "nan_backward"
     }
-    fn forward(&mut self, x: &[&Tensor<T>]) -> Result<Vec<Tensor<T>>> {
-        Ok(vec![x[0].clone()])
+    fn forward(&mut self, x: &[TensorView<'_, T>]) -> Result<Vec<Tensor<T>>> {
+        Ok(vec![x[0].to_owned()])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> Result<Vec<Option<Tensor<T>>>> {
         Ok(vec![Some(ctx.grad_outputs[0].mapv(|_| T::nan()))])
     }
 }

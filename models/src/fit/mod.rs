@@ -42,7 +42,7 @@ mod texture;
 use std::time::Instant;
 
 use autodiff::optim::Adam;
-use autodiff::{AutodiffError, Tape, Tensor};
+use autodiff::{AutodiffError, Tape, Tensor, TensorView};
 use ndarray::{Array2, Array3, ArrayD, IxDyn};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -587,7 +587,7 @@ impl autodiff::Op<f64> for PhotoLossOp {
     fn name(&self) -> &'static str {
         "face_photo_loss"
     }
-    fn forward(&mut self, inputs: &[&Tensor<f64>]) -> autodiff::Result<Vec<Tensor<f64>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, f64>]) -> autodiff::Result<Vec<Tensor<f64>>> {
         let img = inputs[0].as_standard_layout();
         let t = self.target.as_standard_layout();
         let s = img.shape();
@@ -615,7 +615,7 @@ impl autodiff::Op<f64> for PhotoLossOp {
     }
     fn backward(
         &self,
-        ctx: &autodiff::BackwardCtx<'_, f64>,
+        ctx: &autodiff::BackwardCtx<'_, '_, f64>,
     ) -> autodiff::Result<Vec<Option<Tensor<f64>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);

@@ -41,7 +41,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use autodiff::optim::Adam;
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Tape, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Tape, Tensor, TensorView, Var};
 use ndarray::{Array2, Array3, ArrayD, IxDyn};
 use rayon::prelude::*;
 use render_ops::shade::sh::sh_shade;
@@ -541,7 +541,7 @@ impl<T: Real> Op<T> for TexturePriorOp<T> {
     fn name(&self) -> &'static str {
         "texture_prior"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> autodiff::Result<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> autodiff::Result<Vec<Tensor<T>>> {
         let x = inputs[0].as_standard_layout();
         let p = self.prior.as_standard_layout();
         let (h, w, c) = (x.shape()[0], x.shape()[1], x.shape()[2]);
@@ -572,7 +572,7 @@ impl<T: Real> Op<T> for TexturePriorOp<T> {
         let total = rows.into_iter().fold(T::zero(), |a, b| a + b);
         Ok(vec![autodiff::tensor::scalar(total)])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> autodiff::Result<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> autodiff::Result<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }

@@ -62,7 +62,7 @@ mod polygon;
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -934,7 +934,7 @@ impl<T: Real> Op<T> for AnalyticOp<T> {
         "analytic_fragments"
     }
 
-    fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, _inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         Ok(fragment_outputs(&self.fragments, self.area.clone()))
     }
 
@@ -942,7 +942,7 @@ impl<T: Real> Op<T> for AnalyticOp<T> {
     /// centroid values differentiated, its area and moments chained through its pieces to the
     /// lines, the lines to their faces' clip coordinates; per-face corner gradients added to
     /// the vertices in pixel order.
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }

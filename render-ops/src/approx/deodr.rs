@@ -62,7 +62,7 @@
 use std::cmp::Ordering;
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -705,13 +705,13 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         "deodr"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let hard = render_hard(
             "deodr",
             &self.fragments,
             &self.faces,
             &self.background,
-            inputs[1],
+            &inputs[1],
         )?;
         if self.edges.edges.is_empty() {
             return Ok(vec![hard]);
@@ -742,7 +742,7 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         Ok(vec![img])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let fr = &self.fragments;
         let c = self.background.len();
         let w = self.settings.width;

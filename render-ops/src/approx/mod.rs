@@ -58,7 +58,7 @@ pub use tf_mesh::tf_mesh;
 use std::mem::MaybeUninit;
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Real, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Real, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -187,26 +187,26 @@ impl<T: Real> HardRender<T> {
     pub fn forward(
         &self,
         op: &'static str,
-        inputs: &[&Tensor<T>],
+        inputs: &[TensorView<'_, T>],
     ) -> autodiff::Result<Vec<Tensor<T>>> {
         Ok(vec![render_hard(
             op,
             &self.fragments,
             &self.faces,
             &self.background,
-            inputs[1],
+            &inputs[1],
         )?])
     }
 }
 
 /// The hard render `[H, W, C + 1]`: per covered pixel `b0 A[f0] + b1 A[f1] + b2 A[f2]` (the
 /// arithmetic of [`crate::interpolate`]) and alpha 1, the background and alpha 0 elsewhere.
-pub(crate) fn render_hard<T: Real>(
+pub(crate) fn render_hard<T: Real, S: ndarray::Data<Elem = T>>(
     op: &'static str,
     frags: &Fragments<T>,
     faces: &[[u32; 3]],
     bg: &[T],
-    attrs: &Tensor<T>,
+    attrs: &ndarray::ArrayBase<S, ndarray::IxDyn>,
 ) -> autodiff::Result<Tensor<T>> {
     let c = bg.len();
     if attrs.ndim() != 2 || attrs.shape()[1] != c {
@@ -314,7 +314,7 @@ fn render_hard_rows<T: Real, const C: usize, const P: usize>(
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn hard_render_grad<T: Real>(
     op: &'static str,
-    ctx: &BackwardCtx<'_, T>,
+    ctx: &BackwardCtx<'_, '_, T>,
     faces: &[[u32; 3]],
     frags: &Fragments<T>,
     g: &[T],
@@ -322,7 +322,7 @@ pub(crate) fn hard_render_grad<T: Real>(
     settings: &ApproxSettings,
     need_pos: bool,
 ) -> autodiff::Result<HardGrad> {
-    let clip = clip_rows(ctx.inputs[0]).map_err(|e| AutodiffError::Op {
+    let clip = clip_rows(&ctx.inputs[0]).map_err(|e| AutodiffError::Op {
         op,
         detail: e.to_string(),
     })?;
@@ -364,7 +364,11 @@ pub(crate) struct Screen {
 }
 
 impl Screen {
-    pub fn new<T: Real>(clip: &Tensor<T>, width: usize, height: usize) -> Self {
+    pub fn new<T: Real, S: ndarray::Data<Elem = T>>(
+        clip: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+        width: usize,
+        height: usize,
+    ) -> Self {
         let (wf, hf) = (width as f64, height as f64);
         let mut s = Screen {
             width,
@@ -484,7 +488,7 @@ impl<T: Real> HardRender<T> {
     pub fn backward(
         &self,
         op: &'static str,
-        ctx: &BackwardCtx<'_, T>,
+        ctx: &BackwardCtx<'_, '_, T>,
         boundary: impl FnOnce(&BoundaryInputs) -> Vec<[f64; 4]>,
     ) -> autodiff::Result<Vec<Option<Tensor<T>>>> {
         let (frags, faces) = (&*self.fragments, &self.faces[..]);
@@ -505,7 +509,7 @@ impl<T: Real> HardRender<T> {
             return Ok(vec![None, g_attr]);
         };
         let inputs = BoundaryInputs {
-            screen: Screen::new(ctx.inputs[0], frags.width, frags.height),
+            screen: Screen::new(&ctx.inputs[0], frags.width, frags.height),
             g: grad_f64(ctx),
             attrs: ctx.inputs[1].iter().map(|x| x.to_f64c()).collect(),
             img: ctx.outputs[0].iter().map(|x| x.to_f64c()).collect(),
@@ -580,7 +584,7 @@ pub(crate) fn edge_weights(q: [f64; 2], t: f64, persp: bool) -> ([f64; 2], f64) 
 }
 
 /// Gradient of the loss with respect to the output, `[H * W * (C + 1)]`, in `f64`.
-pub(crate) fn grad_f64<T: Real>(ctx: &BackwardCtx<'_, T>) -> Vec<f64> {
+pub(crate) fn grad_f64<T: Real>(ctx: &BackwardCtx<'_, '_, T>) -> Vec<f64> {
     ctx.grad_outputs[0].iter().map(|x| x.to_f64c()).collect()
 }
 

@@ -102,7 +102,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use rayon::prelude::*;
 
 use super::{bin_by_lines, depth_buffer, edge_weights, ApproxSettings, HardRender, Screen};
@@ -462,11 +462,11 @@ impl<T: Real> Op<T> for NmrOp<T> {
         "nmr"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         self.hard.forward("nmr", inputs)
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let fr = &self.hard.fragments;
         let sw = Sweeper {
             faces: &self.hard.faces,

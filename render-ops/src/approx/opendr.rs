@@ -53,7 +53,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use rayon::prelude::*;
 
 use super::{
@@ -215,11 +215,11 @@ impl<T: Real> Op<T> for OpenDrOp<T> {
         "opendr"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         self.hard.forward("opendr", inputs)
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let fr = &self.hard.fragments;
         let g_attr = if ctx.needs_grad[1] {
             let g = ctx.grad_outputs[0].as_standard_layout();
@@ -243,7 +243,7 @@ impl<T: Real> Op<T> for OpenDrOp<T> {
         let px = Px::of(fr);
         let img: Vec<f64> = ctx.outputs[0].iter().map(|x| x.to_f64c()).collect();
         let g = grad_f64(ctx);
-        let screen = Screen::new(ctx.inputs[0], fr.width, fr.height);
+        let screen = Screen::new(&ctx.inputs[0], fr.width, fr.height);
         let nc = self.hard.background.len() + 1;
         let ig = ImageGrad {
             faces: &self.hard.faces,

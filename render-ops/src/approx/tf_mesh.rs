@@ -75,7 +75,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use rayon::prelude::*;
 
 use super::{reduce_rows, sub, ApproxSettings, HardRender, Screen};
@@ -439,11 +439,11 @@ impl<T: Real> Op<T> for TfMeshOp<T> {
         "tf_mesh"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         self.hard.forward("tf_mesh", inputs)
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let fr = &self.hard.fragments;
         self.hard.backward("tf_mesh", ctx, |b| {
             // Band of background pixels along the silhouette.
@@ -718,8 +718,8 @@ impl<T: Real> Op<T> for BandCoverage {
         "tf_mesh_band_coverage"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let screen = Screen::new(inputs[0], self.width, self.height);
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
+        let screen = Screen::new(&inputs[0], self.width, self.height);
         let a: Vec<f64> = (0..self.sides.len())
             .into_par_iter()
             .map(|i| self.eval(&screen, i).0)
@@ -727,11 +727,11 @@ impl<T: Real> Op<T> for BandCoverage {
         Ok(vec![super::tensor_f64(&[a.len()], a)])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let screen = Screen::new(ctx.inputs[0], self.width, self.height);
+        let screen = Screen::new(&ctx.inputs[0], self.width, self.height);
         let g = super::grad_f64(ctx);
         let rows: Vec<Vec<(u32, [f64; 2])>> = self
             .row_ranges()

@@ -35,7 +35,7 @@
 //! Deterministic: rows in parallel, each row's edges in the global order; contributions reduced
 //! in row order.
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -202,7 +202,7 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         "boundary::deodr_antialias"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let src = inputs[0].as_standard_layout();
         let src = src.as_slice().expect("standard");
         let mut img = src.to_vec();
@@ -232,10 +232,10 @@ impl<T: Real> Op<T> for DeodrOp<T> {
         ])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let c = self.geo.c;
         let (w, h) = (self.geo.fragments.width, self.geo.fragments.height);
-        let src = to_f64(ctx.inputs[0]);
+        let src = to_f64(&ctx.inputs[0]);
         let g = grad_out(ctx);
         let rows: Vec<RowGrad> = (0..h)
             .into_par_iter()

@@ -50,7 +50,7 @@ pub use opendr::opendr_antialias;
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 
 use crate::approx::{clip_tensor, Screen};
 use crate::error::RenderError;
@@ -130,7 +130,10 @@ impl<T: Real> Geometry<T> {
     }
 
     /// The screen geometry of clip positions `clip` at the rasterizer's size.
-    pub fn screen(&self, clip: &Tensor<T>) -> Screen {
+    pub fn screen<S: ndarray::Data<Elem = T>>(
+        &self,
+        clip: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+    ) -> Screen {
         Screen::new(clip, self.fragments.width, self.fragments.height)
     }
 }
@@ -169,17 +172,20 @@ impl<T: Real, B: BoundaryTerm> Op<T> for PassThrough<T, B> {
         B::NAME
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        Ok(vec![inputs[0].clone()])
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
+        Ok(vec![inputs[0].to_owned()])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let g_color = ctx.needs_grad[0].then(|| ctx.grad_outputs[0].clone());
         let g_clip = ctx.needs_grad[1].then(|| {
-            let screen = self.geo.screen(ctx.inputs[1]);
-            let g =
-                self.term
-                    .clip_gradient(&self.geo, &screen, &to_f64(ctx.inputs[0]), &grad_out(ctx));
+            let screen = self.geo.screen(&ctx.inputs[1]);
+            let g = self.term.clip_gradient(
+                &self.geo,
+                &screen,
+                &to_f64(&ctx.inputs[0]),
+                &grad_out(ctx),
+            );
             clip_tensor(g)
         });
         Ok(vec![g_color, g_clip])
@@ -200,12 +206,14 @@ pub(crate) fn weld<T: Real>(clip: &Tensor<T>) -> Vec<u32> {
 }
 
 /// The image values of a tensor in `f64`.
-pub(crate) fn to_f64<T: Real>(x: &Tensor<T>) -> Vec<f64> {
+pub(crate) fn to_f64<T: Real, S: ndarray::Data<Elem = T>>(
+    x: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+) -> Vec<f64> {
     x.iter().map(|v| v.to_f64c()).collect()
 }
 
 /// `dL/dI` of the op's single output, in `f64`.
-pub(crate) fn grad_out<T: Real>(ctx: &BackwardCtx<'_, T>) -> Vec<f64> {
+pub(crate) fn grad_out<T: Real>(ctx: &BackwardCtx<'_, '_, T>) -> Vec<f64> {
     to_f64(ctx.grad_outputs[0])
 }
 

@@ -32,7 +32,9 @@ use std::sync::Arc;
 
 use autodiff::gradcheck::GradcheckOptions;
 use autodiff::suite::{Case, CaseResult, Gen, Registry};
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, Var};
+use autodiff::{
+    AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, TensorView, Var,
+};
 use ndarray::{ArrayD, IxDyn};
 
 use super::scene::{check_scene, SceneCheckOptions, SceneInput};
@@ -73,13 +75,13 @@ impl<T: Real> Op<T> for Fail {
     fn name(&self) -> &'static str {
         "gradcheck case"
     }
-    fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, _inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         Err(AutodiffError::Op {
             op: "gradcheck case",
             detail: self.0.clone(),
         })
     }
-    fn backward(&self, _ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, _ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         Ok(vec![])
     }
 }

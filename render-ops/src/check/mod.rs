@@ -25,7 +25,7 @@ pub mod scene;
 
 use autodiff::rng::Rng;
 use autodiff::suite::Registry;
-use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, Var};
+use autodiff::{BackwardCtx, Op, Real, Result as AdResult, Tape, Tensor, TensorView, Var};
 use ndarray::{Array2, Array3, ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -62,10 +62,10 @@ impl<T: Real> Op<T> for ScaleBackward {
     fn name(&self) -> &'static str {
         "scale_backward"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        Ok(vec![inputs[0].clone()])
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
+        Ok(vec![inputs[0].to_owned()])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let f = T::from_f64c(self.factor);
         Ok(vec![
             ctx.needs_grad[0].then(|| ctx.grad_outputs[0].mapv(|g| g * f))

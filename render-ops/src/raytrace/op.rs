@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 use smallvec::SmallVec;
@@ -192,7 +192,9 @@ struct RaytraceOp {
     s: RaytraceSettings,
 }
 
-fn rows<T: Real, const N: usize>(t: &Tensor<T>) -> Vec<[f64; N]> {
+fn rows<T: Real, const N: usize, S: ndarray::Data<Elem = T>>(
+    t: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+) -> Vec<[f64; N]> {
     let t = t.as_standard_layout();
     t.as_slice()
         .expect("standard")
@@ -259,10 +261,10 @@ struct Surface {
 }
 
 impl<'a> Scene<'a> {
-    fn new<T: Real>(op: &'a RaytraceOp, inputs: &[&Tensor<T>]) -> Self {
-        let clip: Vec<[f64; 4]> = rows(inputs[0]);
+    fn new<T: Real>(op: &'a RaytraceOp, inputs: &[TensorView<'_, T>]) -> Self {
+        let clip: Vec<[f64; 4]> = rows(&inputs[0]);
         let q: Vec<V3> = clip.iter().map(|c| [c[0], c[1], c[3]]).collect();
-        let world: Vec<V3> = rows(inputs[1]);
+        let world: Vec<V3> = rows(&inputs[1]);
         let s = &op.s;
         let (primary, shadow) = rayon::join(
             || Bvh::new(&q, &op.faces),
@@ -284,9 +286,9 @@ impl<'a> Scene<'a> {
             q,
             clip,
             world,
-            normals: rows(inputs[2]),
-            albedo: rows(inputs[3]),
-            light_rows: rows(inputs[4]),
+            normals: rows(&inputs[2]),
+            albedo: rows(&inputs[3]),
+            light_rows: rows(&inputs[4]),
             primary,
             shadow,
             scale,
@@ -832,7 +834,7 @@ impl<T: Real> Op<T> for RaytraceOp {
         "raytrace"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let sc = Scene::new(self, inputs);
         let (w, h, spp) = (self.s.width, self.s.height, self.s.spp);
         let (sx, sy) = self.s.strata();
@@ -862,7 +864,7 @@ impl<T: Real> Op<T> for RaytraceOp {
         ])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let need = ctx.needs_grad;
         if !need.iter().any(|&b| b) {
             return Ok(vec![None; 5]);

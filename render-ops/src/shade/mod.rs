@@ -53,7 +53,7 @@ pub use shader::{
     ShaderOutput,
 };
 
-use autodiff::{AutodiffError, Real, Result as AdResult, Tensor};
+use autodiff::{AutodiffError, Real, Result as AdResult, Tensor, TensorView};
 use rayon::prelude::*;
 
 /// Length floor of every normalisation in the shading models and normals: `x / max(|x|, eps)`.
@@ -146,10 +146,10 @@ impl<T: Real> Rows<'_, T> {
 }
 
 /// Checks that `t` is `[n, 3]` (`per_row`) or, when `shared_ok`, `[3]` / `[1, 3]`.
-pub(crate) fn rows_of<'a, T: Real>(
+pub(crate) fn rows_of<'a, T: Real, S: ndarray::Data<Elem = T>>(
     op: &'static str,
     what: &str,
-    t: &'a Tensor<T>,
+    t: &'a ndarray::ArrayBase<S, ndarray::IxDyn>,
     n: usize,
     shared_ok: bool,
 ) -> AdResult<Rows<'a, T>> {
@@ -182,10 +182,10 @@ pub(crate) fn rows_of<'a, T: Real>(
 }
 
 /// `[k, 3]` rows of a small tensor (lights); `[3]` counts as one row.
-pub(crate) fn light_rows<T: Real>(
+pub(crate) fn light_rows<T: Real, S: ndarray::Data<Elem = T>>(
     op: &'static str,
     what: &str,
-    t: &Tensor<T>,
+    t: &ndarray::ArrayBase<S, ndarray::IxDyn>,
 ) -> AdResult<Vec<V3<T>>> {
     let s = t.shape();
     let ok = (s.len() == 2 && s[1] == 3) || s == [3];
@@ -245,18 +245,9 @@ where
 /// The op inputs in standard (row-major contiguous) layout: borrowed when they already are
 /// (the usual case), copied only otherwise, so that a fused op does not copy its inputs per call.
 pub(crate) fn standard_inputs<'a, T: Real>(
-    inputs: &[&'a Tensor<T>],
-) -> Vec<std::borrow::Cow<'a, Tensor<T>>> {
-    inputs
-        .iter()
-        .map(|&t| {
-            if t.is_standard_layout() {
-                std::borrow::Cow::Borrowed(t)
-            } else {
-                std::borrow::Cow::Owned(t.as_standard_layout().into_owned())
-            }
-        })
-        .collect()
+    inputs: &'a [TensorView<'_, T>],
+) -> Vec<ndarray::CowArray<'a, T, ndarray::IxDyn>> {
+    inputs.iter().map(|t| t.as_standard_layout()).collect()
 }
 
 pub(crate) fn grad_tensor<T: Real>(shape: &[usize], data: Vec<T>) -> Tensor<T> {

@@ -15,13 +15,16 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use super::{acc3, cross3, normalize3, normalize3_vjp, scale3, sub3, SAFE_EPS, V3};
 
-fn positions_of<T: Real>(op: &'static str, p: &Tensor<T>) -> AdResult<Vec<V3<T>>> {
+fn positions_of<T: Real, S: ndarray::Data<Elem = T>>(
+    op: &'static str,
+    p: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+) -> AdResult<Vec<V3<T>>> {
     if p.ndim() != 2 || p.shape()[1] != 3 {
         return Err(AutodiffError::shape(
             op,
@@ -32,11 +35,11 @@ fn positions_of<T: Real>(op: &'static str, p: &Tensor<T>) -> AdResult<Vec<V3<T>>
     Ok(p.outer_iter().map(|r| [r[0], r[1], r[2]]).collect())
 }
 
-fn check_faces<T: Real>(
+fn check_faces<T: Real, S: ndarray::Data<Elem = T>>(
     op: &'static str,
     faces: &[[u32; 3]],
     nv: usize,
-    p: &Tensor<T>,
+    p: &ndarray::ArrayBase<S, ndarray::IxDyn>,
 ) -> AdResult<()> {
     for (f, tri) in faces.iter().enumerate() {
         if let Some(&bad) = tri.iter().find(|&&i| i as usize >= nv) {
@@ -148,9 +151,9 @@ impl<T: Real> Op<T> for FaceNormalsOp<T> {
     fn name(&self) -> &'static str {
         "face_normals"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let p = positions_of("face_normals", inputs[0])?;
-        check_faces("face_normals", &self.faces, p.len(), inputs[0])?;
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
+        let p = positions_of("face_normals", &inputs[0])?;
+        check_faces("face_normals", &self.faces, p.len(), &inputs[0])?;
         let c = face_cross(&p, &self.faces);
         let out: Vec<T> = c.iter().flat_map(|&x| normalize3(x, self.eps).0).collect();
         self.adj = Some(Adjacency::new(&self.faces, p.len()));
@@ -160,11 +163,11 @@ impl<T: Real> Op<T> for FaceNormalsOp<T> {
         )
         .expect("f x 3")])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let p = positions_of("face_normals", ctx.inputs[0])?;
+        let p = positions_of("face_normals", &ctx.inputs[0])?;
         let c = face_cross(&p, &self.faces);
         let y = ctx.outputs[0].as_standard_layout();
         let g = ctx.grad_outputs[0].as_standard_layout();
@@ -196,9 +199,9 @@ impl<T: Real> Op<T> for VertexNormalsOp<T> {
     fn name(&self) -> &'static str {
         "vertex_normals"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
-        let p = positions_of("vertex_normals", inputs[0])?;
-        check_faces("vertex_normals", &self.faces, p.len(), inputs[0])?;
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
+        let p = positions_of("vertex_normals", &inputs[0])?;
+        check_faces("vertex_normals", &self.faces, p.len(), &inputs[0])?;
         let c = face_cross(&p, &self.faces);
         let adj = Adjacency::new(&self.faces, p.len());
         self.m = (0..p.len())
@@ -222,11 +225,11 @@ impl<T: Real> Op<T> for VertexNormalsOp<T> {
             ArrayD::from_shape_vec(IxDyn(&[p.len(), 3]), out).expect("v x 3")
         ])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
-        let p = positions_of("vertex_normals", ctx.inputs[0])?;
+        let p = positions_of("vertex_normals", &ctx.inputs[0])?;
         let y = ctx.outputs[0].as_standard_layout();
         let g = ctx.grad_outputs[0].as_standard_layout();
         let (y, g) = (y.as_slice().expect("std"), g.as_slice().expect("std"));

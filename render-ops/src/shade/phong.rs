@@ -22,7 +22,9 @@
 //! whose derivative `spec ln(base)` would be `0 * -inf` there). All normalisations are the
 //! safe `x / max(|x|, eps)` of the [module docs](super).
 
-use autodiff::{tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{
+    tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var,
+};
 use ndarray::{ArrayD, IxDyn};
 
 use super::lights::{Lights, Material, Reflectance};
@@ -230,7 +232,7 @@ fn add_at<T: Real>(buf: &mut [T], at: usize, v: V3<T>) {
 fn read_inputs<'a, T: Real>(
     model: Reflectance,
     eps: T,
-    inputs: &'a [&'a Tensor<T>],
+    inputs: &'a [ndarray::CowArray<'_, T, ndarray::IxDyn>],
 ) -> AdResult<Inputs<'a, T>> {
     const OP: &str = "shade";
     if inputs[0].ndim() != 2 {
@@ -241,11 +243,11 @@ fn read_inputs<'a, T: Real>(
         ));
     }
     let n = inputs[0].shape()[0];
-    let pos = rows_of(OP, "positions", inputs[0], n, false)?;
-    let nrm = rows_of(OP, "normals", inputs[1], n, false)?;
-    let alb = rows_of(OP, "albedo", inputs[2], n, true)?;
-    let ka = rows_of(OP, "ka", inputs[3], n, true)?;
-    let ks = rows_of(OP, "ks", inputs[4], n, true)?;
+    let pos = rows_of(OP, "positions", &inputs[0], n, false)?;
+    let nrm = rows_of(OP, "normals", &inputs[1], n, false)?;
+    let alb = rows_of(OP, "albedo", &inputs[2], n, true)?;
+    let ka = rows_of(OP, "ka", &inputs[3], n, true)?;
+    let ks = rows_of(OP, "ks", &inputs[4], n, true)?;
     if inputs[5].len() != 1 {
         return Err(AutodiffError::shape(
             OP,
@@ -264,13 +266,13 @@ fn read_inputs<'a, T: Real>(
     let e: Vec<T> = inputs[6].iter().copied().collect();
     let eye = [e[0], e[1], e[2]];
     let mut ambient = [T::zero(); 3];
-    for a in light_rows(OP, "ambient colours", inputs[7])? {
+    for a in light_rows(OP, "ambient colours", &inputs[7])? {
         ambient = add3(ambient, a);
     }
-    let dd = light_rows(OP, "light directions", inputs[8])?;
-    let dc = light_rows(OP, "directional colours", inputs[9])?;
-    let pq = light_rows(OP, "light positions", inputs[10])?;
-    let pc = light_rows(OP, "point colours", inputs[11])?;
+    let dd = light_rows(OP, "light directions", &inputs[8])?;
+    let dc = light_rows(OP, "directional colours", &inputs[9])?;
+    let pq = light_rows(OP, "light positions", &inputs[10])?;
+    let pc = light_rows(OP, "point colours", &inputs[11])?;
     if dd.len() != dc.len() || pq.len() != pc.len() {
         return Err(AutodiffError::shape(
             OP,
@@ -317,11 +319,10 @@ impl<T: Real> Op<T> for PhongOp<T> {
         }
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let std = super::standard_inputs(inputs);
-        let refs: Vec<&Tensor<T>> = std.iter().map(|c| c.as_ref()).collect();
-        let k = read_inputs(self.model, self.eps, &refs)?;
-        let n = refs[0].shape()[0];
+        let k = read_inputs(self.model, self.eps, &std)?;
+        let n = std[0].shape()[0];
         let (out, _) = chunked::<T, _>(n, 3, 0, |start, o, _| {
             for (r, row) in o.chunks_mut(3).enumerate() {
                 row.copy_from_slice(&k.color(start + r));
@@ -332,11 +333,10 @@ impl<T: Real> Op<T> for PhongOp<T> {
         ])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let std = super::standard_inputs(ctx.inputs);
-        let refs: Vec<&Tensor<T>> = std.iter().map(|c| c.as_ref()).collect();
-        let k = read_inputs(self.model, self.eps, &refs)?;
-        let n = refs[0].shape()[0];
+        let k = read_inputs(self.model, self.eps, &std)?;
+        let n = std[0].shape()[0];
         let lay = Layout::new(&k);
         let g = ctx.grad_outputs[0].as_standard_layout();
         let g = Rows {

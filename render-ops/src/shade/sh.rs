@@ -15,7 +15,7 @@
 //! and Hanrahan); the shaded colour is linear in them. Normals are normalised first with the
 //! safe `x / max(|x|, eps)`: a zero normal gives `Y = (0.282095, 0, ..., 0, -0.315392, 0, 0)`.
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 
 use super::{chunked, grad_tensor, normalize3, normalize3_vjp, rows_of, Rows, SAFE_EPS, V3};
@@ -68,7 +68,7 @@ struct ShOp<T: Real> {
 }
 
 fn read<'a, T: Real>(
-    inputs: &'a [std::borrow::Cow<'a, Tensor<T>>],
+    inputs: &'a [ndarray::CowArray<'_, T, ndarray::IxDyn>],
 ) -> AdResult<(usize, Rows<'a, T>, Rows<'a, T>, &'a [T])> {
     const OP: &str = "sh_shade";
     if inputs[0].ndim() != 2 {
@@ -105,7 +105,7 @@ impl<T: Real> Op<T> for ShOp<T> {
     fn name(&self) -> &'static str {
         "sh_shade"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let std = super::standard_inputs(inputs);
         let (n, nrm, alb, sh) = read(&std)?;
         let (out, _) = chunked::<T, _>(n, 3, 0, |start, o, _| {
@@ -121,7 +121,7 @@ impl<T: Real> Op<T> for ShOp<T> {
             ArrayD::from_shape_vec(IxDyn(&[n, 3]), out).expect("n x 3")
         ])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let std = super::standard_inputs(ctx.inputs);
         let (n, nrm, alb, sh) = read(&std)?;
         let g = ctx.grad_outputs[0].as_standard_layout();

@@ -23,7 +23,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -112,13 +112,13 @@ impl<T: Real> Op<T> for FailOp {
     fn name(&self) -> &'static str {
         "shader"
     }
-    fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, _inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         Err(AutodiffError::Op {
             op: "shader",
             detail: self.0.clone(),
         })
     }
-    fn backward(&self, _ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, _ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         Ok(Vec::new())
     }
 }
@@ -199,7 +199,7 @@ impl<T: Real> Op<T> for DerivOp<T> {
     fn name(&self) -> &'static str {
         "interpolate_derivatives"
     }
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let attr = inputs[0].as_standard_layout();
         let nv = self
             .faces
@@ -247,7 +247,7 @@ impl<T: Real> Op<T> for DerivOp<T> {
             ArrayD::from_shape_vec(IxDyn(&[n, 2 * c]), out).expect("n x 2c")
         ])
     }
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }

@@ -20,7 +20,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -170,7 +170,9 @@ pub fn softras_blend<'t, T: Real>(
     Ok(colors.tape().apply(op, &[colors, prob, zn]))
 }
 
-fn to_f64<T: Real>(t: &Tensor<T>) -> Vec<f64> {
+fn to_f64<T: Real, S: ndarray::Data<Elem = T>>(
+    t: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+) -> Vec<f64> {
     t.as_standard_layout().iter().map(|x| x.to_f64c()).collect()
 }
 
@@ -244,9 +246,9 @@ impl<T: Real> Op<T> for SoftBlendOp<T> {
         "softras_blend"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let c = inputs[0].shape()[1];
-        let (col, d, zn) = (to_f64(inputs[0]), to_f64(inputs[1]), to_f64(inputs[2]));
+        let (col, d, zn) = (to_f64(&inputs[0]), to_f64(&inputs[1]), to_f64(&inputs[2]));
         let (f, bg) = (&*self.f, &self.bg);
         let (inv_gamma, eps) = (1.0 / self.gamma, self.eps);
         let per = c + 4;
@@ -284,12 +286,12 @@ impl<T: Real> Op<T> for SoftBlendOp<T> {
     /// the alpha gradient: `dL/dc_f = g D e / Z`, `dL/dD_f = e (g . (c_f - I)) / Z + a
     /// prod_{j != f} (1 - D_j)`, `dL/dzn_f = D e (g . (c_f - I)) / (Z gamma)` (`I` does not
     /// depend on `m`).
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let c = ctx.inputs[0].shape()[1];
         let (col, d, zn) = (
-            to_f64(ctx.inputs[0]),
-            to_f64(ctx.inputs[1]),
-            to_f64(ctx.inputs[2]),
+            to_f64(&ctx.inputs[0]),
+            to_f64(&ctx.inputs[1]),
+            to_f64(&ctx.inputs[2]),
         );
         let go = to_f64(ctx.grad_outputs[0]);
         let f = &*self.f;

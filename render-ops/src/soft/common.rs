@@ -3,7 +3,7 @@
 //! closest point of a projected triangle's boundary to a pixel centre with its gradient, and
 //! the chain from NDC to clip coordinates.
 
-use autodiff::{Real, Tensor, Var};
+use autodiff::{Real, Var};
 use rayon::prelude::*;
 
 use crate::raster::{RasterError, MAX_FRAGMENT_SLOTS};
@@ -37,7 +37,9 @@ pub(crate) fn pixel_centre(row: usize, col: usize, width: usize, height: usize) 
 }
 
 /// NDC `(x, y)` and clip `w` (view depth) of every vertex of a [V, 4] clip tensor.
-pub(crate) fn project<T: Real>(clip: &Tensor<T>) -> (Vec<[f64; 2]>, Vec<f64>) {
+pub(crate) fn project<T: Real, S: ndarray::Data<Elem = T>>(
+    clip: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+) -> (Vec<[f64; 2]>, Vec<f64>) {
     let nv = clip.shape()[0];
     let mut ndc = Vec::with_capacity(nv);
     let mut depth = Vec::with_capacity(nv);

@@ -42,7 +42,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -205,7 +205,7 @@ impl<T: Real> Op<T> for ReplaceAlpha {
         "dibr_composite"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let mut out = inputs[0].as_standard_layout().into_owned();
         let alpha = inputs[1].as_standard_layout();
         let c1 = out.shape()[2];
@@ -220,7 +220,7 @@ impl<T: Real> Op<T> for ReplaceAlpha {
         Ok(vec![out])
     }
 
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let g = ctx.grad_outputs[0].as_standard_layout();
         let c1 = g.shape()[2];
         let gs = g.as_slice().expect("standard");
@@ -496,9 +496,9 @@ impl<T: Real> Op<T> for DibrAlphaOp {
         "dibr_alpha"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let s = &self.s;
-        let (ndc, depth) = project(inputs[0]);
+        let (ndc, depth) = project(&inputs[0]);
         let bins = TileBins::new(
             &ndc,
             &depth,
@@ -604,7 +604,7 @@ impl<T: Real> Op<T> for DibrAlphaOp {
     /// Parallel over faces, each summing its own pairs (row-major over its cut-off region);
     /// the per-face sums are added to the vertices in face order, so results are
     /// bit-identical for any thread count.
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }

@@ -44,7 +44,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -296,9 +296,9 @@ fn sigmoid_from(x: f64, e: f64) -> (f64, f64) {
 
 /// Projection (or `pre`'s, computed from the same `clip` by the memory check) and binning
 /// (faces into tiles only when not on the `fast` path, whose forward walks bands of rows).
-fn prepare<T: Real>(
-    clip: &Tensor<T>,
-    attrs: &Tensor<T>,
+fn prepare<T: Real, S: ndarray::Data<Elem = T>>(
+    clip: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+    attrs: &ndarray::ArrayBase<S, ndarray::IxDyn>,
     faces: &[[u32; 3]],
     s: &SoftSettings,
     pre: Option<Projected>,
@@ -613,13 +613,13 @@ impl<T: Real> Op<T> for SoftRasOp {
         "softras"
     }
 
-    fn forward(&mut self, inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let pre = self.pre.take();
         let fast = T::as_f32(&[]).is_some()
             && inputs[1].shape()[1] <= fast::FAST_MAX_C
             && !self.s.perspective_correct
             && fast::f32_range_ok(&self.s);
-        let mut prep = prepare(inputs[0], inputs[1], &self.faces, &self.s, pre, fast);
+        let mut prep = prepare(&inputs[0], &inputs[1], &self.faces, &self.s, pre, fast);
         let (w, h, c) = (self.s.width, self.s.height, prep.channels);
         if prep.fast {
             prep.pxp = lanes::padded_px(&prep.bins.px);
@@ -731,7 +731,7 @@ impl<T: Real> Op<T> for SoftRasOp {
     /// (row spans of its box, in row-major order) from the forward's per-pixel aggregate
     /// ([`Prep::pix`]), so no per-pixel lists are rebuilt; the per-face sums are then added to
     /// the vertices in face order, so results are bit-identical for any thread count.
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         let prep = self
             .prep
             .as_ref()

@@ -36,7 +36,7 @@
 
 use std::sync::Arc;
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, Var};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
@@ -524,7 +524,7 @@ impl<T: Real> Op<T> for StageOp<T> {
         "soft_fragments"
     }
 
-    fn forward(&mut self, _inputs: &[&Tensor<T>]) -> AdResult<Vec<Tensor<T>>> {
+    fn forward(&mut self, _inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let prob = self.prob.iter().map(|&x| T::from_f64c(x)).collect();
         Ok(fragment_outputs(&self.fragments, prob))
     }
@@ -533,7 +533,7 @@ impl<T: Real> Op<T> for StageOp<T> {
     /// perspective weights, view depth, clipping and the raw barycentrics), depths and coverage
     /// (through the closest boundary point) chained to its face's NDC vertices and view
     /// depths, then to clip coordinates; corner gradients added to vertices in fragment order.
-    fn backward(&self, ctx: &BackwardCtx<'_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
         }
