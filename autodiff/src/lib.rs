@@ -33,6 +33,6 @@ pub use active_wait::ActiveWait;
 pub use error::{AutodiffError, Pass, Result};
 pub use ndarray;
 pub use real::{c, Real};
-pub use storage::Buffer;
+pub use storage::{Buffer, Value};
 pub use tape::{BackwardCtx, Gradients, Op, Tape, Var};
 pub use tensor::{Tensor, TensorView};

@@ -25,9 +25,9 @@ impl<T: Send + Sync + 'static> Buffer<T> for Vec<T> {
     }
 }
 
-/// A slot's value.
+/// A slot's value ([`crate::Var::value_ref`]): a cheap handle (one `Arc`) to read in place.
 #[derive(Clone)]
-pub(crate) enum Value<T: Real> {
+pub enum Value<T: Real> {
     /// A tensor the tape owns (op outputs, and leaves made from tensors).
     Owned(Arc<Tensor<T>>),
     /// A caller's buffer of the given shape (its length checked when the leaf was made).
@@ -36,7 +36,7 @@ pub(crate) enum Value<T: Real> {
 
 impl<T: Real> Value<T> {
     /// The value as a view, without copying.
-    pub(crate) fn view(&self) -> TensorView<'_, T> {
+    pub fn view(&self) -> TensorView<'_, T> {
         match self {
             Value::Owned(t) => t.view(),
             Value::Borrowed(b, shape) => ArrayViewD::from_shape(shape.clone(), b.data())
@@ -60,19 +60,27 @@ impl<T: Real> Value<T> {
         }
     }
 
-    pub(crate) fn shape(&self) -> &[usize] {
+    /// The shape.
+    pub fn shape(&self) -> &[usize] {
         match self {
             Value::Owned(t) => t.shape(),
             Value::Borrowed(_, s) => s.slice(),
         }
     }
 
-    pub(crate) fn ndim(&self) -> usize {
+    /// The number of dimensions.
+    pub fn ndim(&self) -> usize {
         self.shape().len()
     }
 
-    pub(crate) fn len(&self) -> usize {
+    /// The number of elements.
+    pub fn len(&self) -> usize {
         self.shape().iter().product()
+    }
+
+    /// True for zero elements.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
     }
 }
 

@@ -1013,6 +1013,11 @@ impl<'t, T: Real> Var<'t, T> {
     /// The value, or the tape's first error if this variable was poisoned by it. A borrowed
     /// leaf ([`Tape::var_borrowed`]) is copied.
     pub fn value(&self) -> Result<Arc<Tensor<T>>> {
+        Ok(self.value_ref()?.to_shared())
+    }
+    /// The value as stored, to read in place: unlike [`Var::value`], a borrowed leaf
+    /// ([`Tape::var_borrowed`]) is not copied.
+    pub fn value_ref(&self) -> Result<Value<T>> {
         if self.is_pending() {
             self.tape.materialize_ids(&[self.id]);
         }
@@ -1024,7 +1029,7 @@ impl<'t, T: Real> Var<'t, T> {
                 .clone()
                 .unwrap_or_else(|| AutodiffError::Tape("poisoned variable".into())));
         }
-        Ok(s.value.to_shared())
+        Ok(s.value.clone())
     }
     /// The single element of a one-element variable.
     pub fn item(&self) -> Result<T> {

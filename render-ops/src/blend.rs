@@ -285,7 +285,7 @@ pub fn blend_weighted<'t, T: Real>(
         fragments: fragments.clone(),
         background: background.to_vec(),
     };
-    let (cv, wv) = (colors.value()?, weights.value()?);
-    op.check(&cv, &wv)?;
+    let (cv, wv) = (colors.value_ref()?, weights.value_ref()?);
+    op.check(&cv.view(), &wv.view())?;
     Ok(colors.tape().apply(op, &[colors, weights]))
 }

@@ -219,9 +219,10 @@ pub fn render_attributes<'t, T: Real>(
         let colors = crate::interpolate::interpolate(attrs, &r)?;
         return crate::blend::blend_hard(colors, &r.fragments, background);
     }
-    let cv = clip.value()?;
-    let rows = clip_rows(&cv)?;
-    let av = attrs.value()?;
+    let cv = clip.value_ref()?;
+    let rows = clip_rows(&cv.view())?;
+    let av = attrs.value_ref()?;
+    let av = av.view();
     let a = av.as_standard_layout();
     let img = crate::raster::render_attributes_direct(
         &rows,
@@ -243,8 +244,7 @@ pub fn rasterize<'t, T: Real>(
     faces: Arc<Vec<[u32; 3]>>,
     settings: &RasterSettings,
 ) -> Result<Rasterized<'t, T>, RenderError> {
-    let cv = clip.value()?;
-    let rows = clip_rows(&cv)?;
+    let rows = clip_rows(&clip.value_ref()?.view())?;
     let fragments = Arc::new(crate::raster::rasterize_fragments(&rows, &faces, settings)?);
     Ok(record(clip, fragments, faces, settings))
 }

@@ -736,10 +736,11 @@ fn sample_level_composed<'t, T: Real>(
     let s = level.shape();
     let (h, w, c) = (s[0], s[1], s[2]);
     let flat = level.reshape(&[h * w, c]);
-    let uvv = match uv.value() {
-        Ok(v) => v.as_standard_layout().into_owned(),
+    let uvv = match uv.value_ref() {
+        Ok(v) => v,
         Err(_) => return uv,
     };
+    let uvv = uvv.view();
     let n = uvv.shape()[0];
     let us: Vec<T> = (0..n).map(|i| uvv[[i, 0]]).collect();
     let vs: Vec<T> = (0..n).map(|i| uvv[[i, 1]]).collect();

@@ -786,8 +786,7 @@ pub fn analytic_fragments<'t, T: Real>(
         faces_per_pixel: 1,
         ..*settings
     };
-    let cv = clip.value()?;
-    let rows = clip_rows(&cv)?;
+    let rows = clip_rows(&clip.value_ref()?.view())?;
     validate_inputs(&rows, &faces, &s)?;
     let (w, h) = (s.width, s.height);
     let geos: Vec<Option<FaceGeo>> = faces

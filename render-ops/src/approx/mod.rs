@@ -147,8 +147,7 @@ pub(crate) fn prepare<'t, T: Real>(
         )
         .into());
     }
-    let cv = clip.value()?;
-    let rows = clip_rows(&cv)?;
+    let rows = clip_rows(&clip.value_ref()?.view())?;
     let frags = crate::raster::rasterize_fragments(&rows, faces, &s.raster())?;
     let bg = (0..c)
         .map(|ch| T::from_f64c(s.background.get(ch).copied().unwrap_or(0.0)))

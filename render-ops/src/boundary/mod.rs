@@ -115,8 +115,7 @@ impl<T: Real> Geometry<T> {
             )
             .into());
         }
-        let cv = clip.value()?;
-        let canon = weld(&cv);
+        let canon = weld(&clip.value_ref()?.view());
         let welded = raster
             .faces
             .iter()
@@ -193,7 +192,9 @@ impl<T: Real, B: BoundaryTerm> Op<T> for PassThrough<T, B> {
 }
 
 /// Per vertex, the first vertex with bit-identical clip coordinates (itself if none before).
-pub(crate) fn weld<T: Real>(clip: &Tensor<T>) -> Vec<u32> {
+pub(crate) fn weld<T: Real, S: ndarray::Data<Elem = T>>(
+    clip: &ndarray::ArrayBase<S, ndarray::IxDyn>,
+) -> Vec<u32> {
     let mut first: HashMap<[u64; 4], u32> = HashMap::with_capacity(clip.shape()[0]);
     clip.outer_iter()
         .enumerate()
@@ -234,6 +235,6 @@ mod tests {
             ],
         )
         .unwrap();
-        assert_eq!(weld::<f64>(&c), vec![0, 1, 0, 1]);
+        assert_eq!(weld::<f64, _>(&c), vec![0, 1, 0, 1]);
     }
 }

@@ -158,7 +158,7 @@ pub fn raytrace<'t, T: Real>(
         ("lights", lights, [n_rows, 3]),
     ];
     for (name, var, shape) in want {
-        let val = var.value()?;
+        let val = var.value_ref()?;
         if val.shape() != shape {
             return Err(AutodiffError::shape(
                 "raytrace",
@@ -167,7 +167,7 @@ pub fn raytrace<'t, T: Real>(
             )
             .into());
         }
-        RenderError::check_finite(name, &val)?;
+        RenderError::check_finite(name, &val.view())?;
     }
     if let Some((f, tri)) = faces
         .iter()

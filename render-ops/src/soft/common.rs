@@ -453,9 +453,10 @@ pub(crate) fn check_memory_projected<T: Real>(
             limit: MAX_FRAGMENT_SLOTS,
         });
     }
-    let Ok(clip) = clip.value() else {
+    let Ok(clip) = clip.value_ref() else {
         return Ok(None);
     };
+    let clip = clip.view();
     if clip.ndim() != 2 || clip.shape()[1] != 4 {
         return Ok(None);
     }

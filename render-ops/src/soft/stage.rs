@@ -190,7 +190,8 @@ pub fn soft_fragments<'t, T: Real>(
     let s = settings;
     let dmax = s.cutoff_sq().sqrt();
     let pre = check_memory_projected(OP, &clip, &faces, s.width, s.height, dmax, s.cull_backfaces)?;
-    let cv = clip.value()?;
+    let cv = clip.value_ref()?;
+    let cv = cv.view();
     let Projected { ndc, depth, rects } = match pre {
         Some(p) => p,
         None => {
