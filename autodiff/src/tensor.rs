@@ -546,14 +546,19 @@ where
     }
 }
 
-/// Checks that every element is finite.
+/// Checks that every element is finite (contiguous data: branch-free per chunk, so it
+/// vectorises; in parallel for large tensors).
 pub fn all_finite<T: Real, S: Data<Elem = T>>(x: &ArrayBase<S, IxDyn>) -> bool {
     match x.as_slice() {
-        Some(s) if s.len() >= PAR_MIN_LEN => s
-            .par_chunks(REDUCE_CHUNK)
-            .all(|c| c.iter().all(|v| v.is_finite())),
-        _ => x.iter().all(|v| v.is_finite()),
+        Some(s) if s.len() >= PAR_MIN_LEN => s.par_chunks(REDUCE_CHUNK).all(all_finite_slice),
+        Some(s) => all_finite_slice(s),
+        None => x.iter().all(|v| v.is_finite()),
     }
+}
+
+/// Every element of `s` finite, without an early exit (so the loop vectorises).
+pub fn all_finite_slice<T: Real>(s: &[T]) -> bool {
+    s.iter().fold(true, |ok, v| ok & v.is_finite())
 }
 
 /// Casts a tensor to another scalar type.

@@ -214,8 +214,8 @@ pub fn floats<T: Element + Real>(
     };
     // NaN or Inf would otherwise reach an image silently: named like the library does (a
     // flat scan first; the indexed search only for the message).
-    if !buf.data().iter().all(|x| x.is_finite()) {
-        let t = ndarray::ArrayViewD::from_shape(IxDyn(&shape), buf.data()).expect("shape");
+    let t = ndarray::ArrayViewD::from_shape(IxDyn(&shape), buf.data()).expect("shape");
+    if !autodiff::tensor::all_finite(&t) {
         RenderError::check_finite(name, &t).map_err(crate::to_py)?;
     }
     Ok(Floats { shape, buf })
