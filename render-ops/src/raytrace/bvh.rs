@@ -66,13 +66,15 @@ pub struct Bvh {
     tris: Vec<[V3; 3]>,
 }
 
+#[derive(Clone, Copy)]
 struct Prim {
     bounds: Aabb,
     centroid: V3,
     face: u32,
 }
 
-fn build(prims: &mut [Prim]) -> Vec<Node> {
+/// The subtree over `prims`; `scratch` (as long as `prims`) holds the partition's right side.
+fn build(prims: &mut [Prim], scratch: &mut [Prim]) -> Vec<Node> {
     let mut bounds = Aabb::EMPTY;
     let mut cb = Aabb::EMPTY;
     for p in prims.iter() {
@@ -139,19 +141,26 @@ fn build(prims: &mut [Prim]) -> Vec<Node> {
     let (lo, hi) = (cb.lo[axis], cb.hi[axis]);
     let scale = BINS as f64 / (hi - lo);
     let goes_left = |p: &Prim| (((p.centroid[axis] - lo) * scale) as usize).min(BINS - 1) <= split;
-    // Stable in-place partition (order of each side as before): deterministic.
-    let mut mid = 0;
+    // Stable partition (each side in its former order, so deterministic), in linear time: the
+    // left side compacts in place, the right side waits in `scratch`.
+    let (mut mid, mut nr) = (0, 0);
     for i in 0..prims.len() {
-        if goes_left(&prims[i]) {
-            prims[mid..=i].rotate_right(1);
+        let p = prims[i];
+        if goes_left(&p) {
+            prims[mid] = p;
             mid += 1;
+        } else {
+            scratch[nr] = p;
+            nr += 1;
         }
     }
+    prims[mid..].copy_from_slice(&scratch[..nr]);
     let (l, r) = prims.split_at_mut(mid);
+    let (sl, sr) = scratch.split_at_mut(mid);
     let (left, right) = if l.len() + r.len() > PARALLEL_MIN {
-        rayon::join(|| build(l), || build(r))
+        rayon::join(|| build(l, sl), || build(r, sr))
     } else {
-        (build(l), build(r))
+        (build(l, sl), build(r, sr))
     };
     let mut nodes = Vec::with_capacity(1 + left.len() + right.len());
     nodes.push(Node {
@@ -210,7 +219,8 @@ impl Bvh {
         let mut nodes = if prims.is_empty() {
             Vec::new()
         } else {
-            build(&mut prims)
+            let mut scratch = prims.clone();
+            build(&mut prims, &mut scratch)
         };
         relocate(&mut nodes);
         let order: Vec<u32> = prims.iter().map(|p| p.face).collect();
@@ -231,20 +241,25 @@ impl Bvh {
         self.order.is_empty()
     }
 
-    #[inline]
-    fn slab(&self, b: &Aabb, r: &Ray, t_max: f64) -> Option<f64> {
+    /// The entry distance of `r` into box `b` within `[0, t_max]`, or infinity for a miss.
+    #[inline(always)]
+    fn slab(b: &Aabb, r: &Ray, t_max: f64) -> f64 {
         let mut t0 = 0.0f64;
         let mut t1 = t_max;
         for k in 0..3 {
             let a = (b.lo[k] - r.origin[k]) * r.inv_dir[k];
             let c = (b.hi[k] - r.origin[k]) * r.inv_dir[k];
-            // NaN (0 * inf on a slab plane) keeps the other bound: max/min ignore NaN.
+            // NaN (0 * inf on a slab plane) keeps the other bound: the comparisons are false.
             let (n, f) = if a <= c { (a, c) } else { (c, a) };
-            t0 = t0.max(n);
-            t1 = t1.min(f);
+            t0 = if n > t0 { n } else { t0 };
+            t1 = if f < t1 { f } else { t1 };
         }
         // Conservative: a small relative slack so rays grazing a box face still enter it.
-        (t0 <= t1 * (1.0 + 4.0 * f64::EPSILON)).then_some(t0)
+        if t0 <= t1 * (1.0 + 4.0 * f64::EPSILON) {
+            t0
+        } else {
+            f64::INFINITY
+        }
     }
 
     /// The nearest hit with `t_min < t < t_max`; ties in `t` go to the lower face index.
@@ -279,17 +294,33 @@ impl Bvh {
         hit
     }
 
-    /// Front-to-back traversal; `leaf(slot, t_far)` returns true to stop.
+    /// Front-to-back traversal; `leaf(slot, t_far)` returns true to stop. Each stacked node
+    /// keeps its entry distance, so a subtree beyond the nearest hit found since it was pushed
+    /// is skipped without touching it.
     #[inline]
     fn walk(&self, r: &Ray, t_far: &mut f64, mut leaf: impl FnMut(usize, &mut f64) -> bool) {
-        if self.nodes.is_empty() || self.slab(&self.nodes[0].bounds, r, *t_far).is_none() {
+        if self.nodes.is_empty() || Self::slab(&self.nodes[0].bounds, r, *t_far).is_infinite() {
             return;
         }
-        let mut stack = [0u32; 64];
+        let root = &self.nodes[0];
+        if root.count > 0 {
+            // A one-leaf tree (a few triangles): no stack to set up.
+            for slot in root.index..root.index + root.count {
+                if leaf(slot as usize, t_far) {
+                    return;
+                }
+            }
+            return;
+        }
+        let mut stack = [(0u32, 0.0f64); 64];
         let mut sp = 1;
         while sp > 0 {
             sp -= 1;
-            let n = &self.nodes[stack[sp] as usize];
+            let (at, t_in) = stack[sp];
+            if t_in > *t_far * (1.0 + 4.0 * f64::EPSILON) {
+                continue;
+            }
+            let n = &self.nodes[at as usize];
             if n.count > 0 {
                 for slot in n.index..n.index + n.count {
                     if leaf(slot as usize, t_far) {
@@ -298,20 +329,17 @@ impl Bvh {
                 }
                 continue;
             }
-            let l = stack[sp] + 1;
-            let rr = n.index;
-            let tl = self.slab(&self.nodes[l as usize].bounds, r, *t_far);
-            let tr = self.slab(&self.nodes[rr as usize].bounds, r, *t_far);
+            let (l, rr) = (at + 1, n.index);
+            let tl = Self::slab(&self.nodes[l as usize].bounds, r, *t_far);
+            let tr = Self::slab(&self.nodes[rr as usize].bounds, r, *t_far);
             // Push the farther child first so that the nearer one is visited first.
-            let order = match (tl, tr) {
-                (Some(a), Some(b)) if a <= b => [Some(rr), Some(l)],
-                (Some(_), Some(_)) => [Some(l), Some(rr)],
-                (Some(_), None) => [None, Some(l)],
-                (None, Some(_)) => [None, Some(rr)],
-                (None, None) => [None, None],
+            let (near, far) = if tl <= tr {
+                ((l, tl), (rr, tr))
+            } else {
+                ((rr, tr), (l, tl))
             };
-            for c in order.into_iter().flatten() {
-                if sp < stack.len() {
+            for c in [far, near] {
+                if c.1.is_finite() && sp < stack.len() {
                     stack[sp] = c;
                     sp += 1;
                 }
