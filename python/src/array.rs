@@ -97,12 +97,9 @@ pub struct Floats<T: Real> {
 }
 
 impl<T: Real> Floats<T> {
-    /// A tensor's worth of values the binding made itself (defaults, not user input).
-    pub fn owned(t: Tensor<T>) -> Self {
-        let shape = t.shape().to_vec();
-        let data = autodiff::tensor::into_standard(t)
-            .into_raw_vec_and_offset()
-            .0;
+    /// Row-major values of `shape` that the binding made itself (defaults, not user input).
+    pub fn owned(shape: Vec<usize>, data: Vec<T>) -> Self {
+        debug_assert_eq!(shape.iter().product::<usize>(), data.len());
         Floats {
             shape,
             buf: Arc::new(data),

@@ -493,11 +493,8 @@ fn bary_input<T: FragmentsOf>(
     match bary {
         Some(b) => floats::<T>("bary", b, &[Some(n), Some(3)], "[N, 3] (N fragments)"),
         None => Ok(Floats::owned(
-            ndarray::ArrayD::from_shape_vec(
-                ndarray::IxDyn(&[n, 3]),
-                f.bary.iter().flatten().copied().collect(),
-            )
-            .expect("n x 3"),
+            vec![n, 3],
+            f.bary.iter().flatten().copied().collect(),
         )),
     }
 }

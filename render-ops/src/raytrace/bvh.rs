@@ -302,14 +302,13 @@ impl Bvh {
         if self.nodes.is_empty() || Self::slab(&self.nodes[0].bounds, r, *t_far).is_infinite() {
             return;
         }
-        let root = &self.nodes[0];
-        if root.count > 0 {
+        // The triangles of leaf `n`; true when `leaf` asks to stop.
+        let mut scan = |n: &Node, t_far: &mut f64| {
+            (n.index..n.index + n.count).any(|slot| leaf(slot as usize, t_far))
+        };
+        if self.nodes[0].count > 0 {
             // A one-leaf tree (a few triangles): no stack to set up.
-            for slot in root.index..root.index + root.count {
-                if leaf(slot as usize, t_far) {
-                    return;
-                }
-            }
+            scan(&self.nodes[0], t_far);
             return;
         }
         let mut stack = [(0u32, 0.0f64); 64];
@@ -322,10 +321,8 @@ impl Bvh {
             }
             let n = &self.nodes[at as usize];
             if n.count > 0 {
-                for slot in n.index..n.index + n.count {
-                    if leaf(slot as usize, t_far) {
-                        return;
-                    }
+                if scan(n, t_far) {
+                    return;
                 }
                 continue;
             }
