@@ -22,9 +22,7 @@
 //! whose derivative `spec ln(base)` would be `0 * -inf` there). All normalisations are the
 //! safe `x / max(|x|, eps)` of the [module docs](super).
 
-use autodiff::{
-    tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var,
-};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 
 use super::lights::{Lights, Material, Reflectance};
