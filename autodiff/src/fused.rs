@@ -1,6 +1,6 @@
 //! Fused evaluation of elementwise graphs: inside [`crate::Tape::fused`], elementwise and
-//! broadcast ops (unary, binary, `where`, `x * x`, sums and normalisation over a short last
-//! axis) are not computed but recorded as nodes of a small expression graph. When a value is
+//! broadcast ops (unary, binary, `where`, `x * x`, sums, normalisation and slices over a short
+//! last axis) are not computed but recorded as nodes of a small expression graph. When a value is
 //! needed (read, fed to an op the fuser does not handle, or asked for with
 //! [`crate::Tape::materialize`]) the graph behind it becomes ONE tape op, [`FusedOp`], that
 //! evaluates it chunk by chunk, so that a chunk's intermediates stay in cache and are never
@@ -47,7 +47,7 @@ use rayon::prelude::*;
 use smallvec::SmallVec;
 
 use crate::error::{AutodiffError, Pass, Result};
-use crate::ops::elementwise::{sigmoid, Binary, Unary};
+use crate::ops::elementwise::{heaviside, sigmoid, Binary, Unary};
 use crate::tape::{BackwardCtx, Op};
 use crate::tensor::{Tensor, TensorView, PAR_MIN_LEN};
 use crate::Real;
@@ -105,6 +105,8 @@ pub(crate) enum Kind<T> {
     SumLast(bool),
     /// `x / max(|x|, eps)` along the last axis.
     Normalize(T),
+    /// Lanes `start..end` of the last axis (`x[..., start..end]`: a shader's `n.x`).
+    SliceLast(usize, usize),
 }
 
 impl<T: Real> Kind<T> {
@@ -116,6 +118,7 @@ impl<T: Real> Kind<T> {
             Kind::Select => "where",
             Kind::SumLast(_) => "sum",
             Kind::Normalize(_) => "normalize",
+            Kind::SliceLast(..) => "slice",
         }
     }
 }
@@ -315,7 +318,7 @@ pub(crate) fn plan<T: Real>(
                 false
             } else {
                 match node.kind {
-                    Kind::SumLast(_) | Kind::Normalize(_) => {
+                    Kind::SumLast(_) | Kind::Normalize(_) | Kind::SliceLast(..) => {
                         if s.len() < 2 {
                             return None;
                         }
@@ -414,7 +417,7 @@ pub(crate) fn plan<T: Real>(
                 Arg::Node(i) => (Src::Node(i), role[i] == Some(true)),
             };
             let acc = match n.kind {
-                Kind::SumLast(_) | Kind::Normalize(_) => {
+                Kind::SumLast(_) | Kind::Normalize(_) | Kind::SliceLast(..) => {
                     lane = *s.last().expect("checked at record time");
                     Access::Full
                 }
@@ -685,6 +688,7 @@ fn unary_fwd<T: Real>(k: Unary<T>, o: &mut [T], x: &[T]) {
                 v
             }
         }),
+        Unary::Heaviside => ew2(o, x, d, |v, _| heaviside(v)),
     }
 }
 
@@ -783,6 +787,7 @@ fn unary_bwd<T: Real>(k: Unary<T>, o: &mut [T], g: &[T], x: &[T], y: &[T]) {
                 }
             },
         ),
+        Unary::Heaviside => ew3(o, g, d, d, |_, _, z| z),
     }
 }
 
@@ -1024,6 +1029,14 @@ impl<T: Real> FusedOp<T> {
                         *o = acc;
                     }
                 }
+                Kind::SliceLast(a, b) => {
+                    let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
+                    let x = at_s(x);
+                    let k = nd.lane;
+                    for (o, lane) in out.chunks_exact_mut(b - a).zip(x.chunks_exact(k)) {
+                        o.copy_from_slice(&lane[a..b]);
+                    }
+                }
                 Kind::Normalize(eps) => {
                     let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
                     let x = at_s(x);
@@ -1236,6 +1249,19 @@ impl<T: Real> FusedOp<T> {
                         let t = sized(tmp, n * k);
                         for (o, &gv) in t.chunks_exact_mut(k).zip(g) {
                             o.iter_mut().for_each(|o| *o = gv);
+                        }
+                        give!(src, acc, t);
+                    }
+                }
+                Kind::SliceLast(a, b) => {
+                    let (src, acc) = (nd.args[0].0, &nd.args[0].1);
+                    if wants(src) {
+                        let k = nd.lane;
+                        let t = sized(tmp, n / (b - a) * k);
+                        for (o, gv) in t.chunks_exact_mut(k).zip(g.chunks_exact(b - a)) {
+                            o[..a].iter_mut().for_each(|o| *o = T::zero());
+                            o[a..b].copy_from_slice(gv);
+                            o[b..].iter_mut().for_each(|o| *o = T::zero());
                         }
                         give!(src, acc, t);
                     }

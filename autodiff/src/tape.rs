@@ -21,6 +21,7 @@ use crate::error::{AutodiffError, Pass, Result};
 use crate::fused::{Arg, Dag, DagNode, FusedBackward, Kind, DEFAULT_CHUNK};
 use crate::ops::elementwise::{BinaryOp, MulSelfOp, UnaryOp, WhereOp};
 use crate::ops::reduce::SumOp;
+use crate::ops::shape::SliceOp;
 use crate::ops::vector::NormalizeOp;
 use crate::storage::{Buffer, Value};
 use crate::tensor::{all_finite, scalar, Tensor, TensorView};
@@ -542,6 +543,15 @@ impl<T: Real> Tape<T> {
                 }
                 shapes[0].clone()
             }
+            Kind::SliceLast(a, b) => {
+                let k = *shapes[0].last()?;
+                if a >= b || b > k || k > crate::fused::MAX_LANE {
+                    return None;
+                }
+                let mut o = shapes[0].clone();
+                *o.last_mut()? = b - a;
+                o
+            }
         };
         let mut inner = self.inner.borrow_mut();
         let mut rg = false;
@@ -552,7 +562,8 @@ impl<T: Real> Tape<T> {
             }
             rg |= s.requires_grad;
         }
-        rg &= !self.is_no_grad();
+        // A step has no gradient: nothing flows back through it.
+        rg &= !self.is_no_grad() && kind != Kind::Unary(crate::ops::elementwise::Unary::Heaviside);
         let mut largs: SmallVec<[LazyArg; 3]> = SmallVec::new();
         if let Some(m) = mask {
             largs.push(LazyArg::Mask(inner.masks.len() as u32));
@@ -781,6 +792,14 @@ impl<T: Real> Tape<T> {
                 self.record_into(op, &args, &[s])
             }
             Kind::Normalize(eps) => self.record_into(NormalizeOp { eps }, &args, &[s]),
+            Kind::SliceLast(start, end) => {
+                let op = SliceOp {
+                    axis: ndim.saturating_sub(1),
+                    start,
+                    end,
+                };
+                self.record_into(op, &args, &[s])
+            }
         }
     }
 

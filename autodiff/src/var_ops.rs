@@ -113,6 +113,12 @@ impl<'t, T: Real> Var<'t, T> {
     pub fn pow(self, y: Self) -> Self {
         self.binary(Binary::Pow, y)
     }
+    /// 1 where x > 0, 0 where x <= 0 (`torch.heaviside(x, 0)`); no gradient flows through it.
+    /// Inside [`crate::Tape::fused`] it keeps a mask such as "facing the light" in the fused
+    /// region, where a mask read from a value would end the region there.
+    pub fn heaviside(self) -> Self {
+        self.unary(Unary::Heaviside)
+    }
     /// min(max(x, lo), hi)
     pub fn clamp(self, lo: T, hi: T) -> Self {
         self.unary(Unary::Clamp(lo, hi))
@@ -221,6 +227,11 @@ impl<'t, T: Real> Var<'t, T> {
     /// `start..end` along `axis`.
     pub fn slice(self, ax: isize, start: usize, end: usize) -> Self {
         let a = axis(self.ndim(), ax);
+        if self.ndim() > 0 && a == self.ndim() - 1 {
+            if let Some(v) = self.lazy(Kind::SliceLast(start, end), &[self], None) {
+                return v;
+            }
+        }
         self.tape().apply(
             SliceOp {
                 axis: a,

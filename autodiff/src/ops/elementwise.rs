@@ -55,6 +55,9 @@ pub enum Unary<T> {
     ScalarPow(T),
     /// min(max(x, lo), hi)
     Clamp(T, T),
+    /// 1 where x > 0, 0 where x <= 0 (`torch.heaviside(x, 0)`), NaN kept; no gradient (its
+    /// derivative is 0 almost everywhere): a differentiable graph's mask, as `relu'`.
+    Heaviside,
 }
 
 impl<T: Real> Unary<T> {
@@ -80,6 +83,7 @@ impl<T: Real> Unary<T> {
             Unary::PowScalar(_) => "pow_scalar",
             Unary::ScalarPow(_) => "scalar_pow",
             Unary::Clamp(..) => "clamp",
+            Unary::Heaviside => "heaviside",
         }
     }
 }
@@ -92,6 +96,18 @@ pub fn sigmoid<T: Real>(x: T) -> T {
     } else {
         let e = x.exp();
         e / (T::one() + e)
+    }
+}
+
+/// The unit step `x > 0` as 1 or 0, NaN passed through.
+#[inline(always)]
+pub fn heaviside<T: Real>(x: T) -> T {
+    if x > T::zero() {
+        T::one()
+    } else if x <= T::zero() {
+        T::zero()
+    } else {
+        x
     }
 }
 
@@ -145,6 +161,7 @@ impl<T: Real> Op<T> for UnaryOp<T> {
                     }
                 })
             }
+            Unary::Heaviside => map1(x, heaviside),
         };
         Ok(vec![y])
     }
@@ -211,6 +228,7 @@ impl<T: Real> UnaryOp<T> {
             }
             Unary::ScalarPow(c) => g.map2(&y, |g, y| g * y * c.ln()),
             Unary::Clamp(lo, hi) => g.map2(&x, |g, x| if x >= lo && x <= hi { g } else { z }),
+            Unary::Heaviside => g.map1(|_| z),
         }
     }
 }
@@ -535,6 +553,7 @@ mod tests {
                 Unary::PowScalar(1.5),
                 Unary::ScalarPow(1.5),
                 Unary::Clamp(-1.0, 1.0),
+                Unary::Heaviside,
             ];
             for k in kinds {
                 let mut op = UnaryOp(k);

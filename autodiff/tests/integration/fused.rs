@@ -32,6 +32,8 @@ enum Step {
     Where(usize, usize, u64),
     SumLast(usize, bool),
     Normalize(usize),
+    /// Lanes of the last axis, chosen by the second field.
+    Slice(usize, usize),
 }
 
 /// The inputs: row-varying `[N, 3]`, `[N, 1]`, `[N, 3]`, and row-invariant `[3]`, `[1]`, `[]`.
@@ -54,7 +56,7 @@ fn apply<'t, T: Real>(vars: &mut Vec<Var<'t, T>>, st: &Step) {
     let v = match *st {
         Step::Unary(k, i) => {
             let x = pick(i);
-            match k % 16 {
+            match k % 17 {
                 0 => -x,
                 1 => (x * c(0.3)).exp(),
                 2 => (x.abs() + c(0.5)).ln(),
@@ -70,7 +72,8 @@ fn apply<'t, T: Real>(vars: &mut Vec<Var<'t, T>>, st: &Step) {
                 12 => (x.abs() + c(0.5)).powf(c(1.7)),
                 13 => x.clamp(c(0.4), c(0.9)),
                 14 => x / c(3.0),
-                _ => (x.abs() + c(1.0)).recip() * c(1.5),
+                15 => (x.abs() + c(1.0)).recip() * c(1.5),
+                _ => (x - c(0.7)).heaviside(),
             }
         }
         Step::Binary(k, i, j) => {
@@ -122,6 +125,14 @@ fn apply<'t, T: Real>(vars: &mut Vec<Var<'t, T>>, st: &Step) {
             // they are added (a fused op is recorded when it is materialised, so its
             // contributions reach a shared input in another order than eager's).
             x.normalize(c(1e-3))
+        }
+        Step::Slice(i, s) => {
+            let x = pick(i);
+            let Some(&k) = x.shape().last() else {
+                return;
+            };
+            let start = s % k;
+            x.slice(-1, start, start + 1 + (s / k) % (k - start))
         }
     };
     vars.push(v);
@@ -264,6 +275,7 @@ fn step() -> impl Strategy<Value = Step> {
         (any::<usize>(), any::<usize>(), any::<u64>()).prop_map(|(i, j, s)| Step::Where(i, j, s)),
         (any::<usize>(), any::<bool>()).prop_map(|(i, k)| Step::SumLast(i, k)),
         any::<usize>().prop_map(Step::Normalize),
+        (any::<usize>(), any::<usize>()).prop_map(|(i, s)| Step::Slice(i, s)),
     ]
 }
 
@@ -331,6 +343,9 @@ fn shader_prog() -> Vec<Step> {
         Step::Binary(6, 18, 2),   // 19: max
         Step::SumLast(19, false), // 20: [N]
         Step::Unary(4, 20),       // 21: sin
+        Step::Slice(16, 4),       // 22: lanes 1..3 of [N,3]
+        Step::Unary(16, 10),      // 23: heaviside [N,1]
+        Step::Binary(2, 22, 23),  // 24: [N,2] * [N,1]
     ]
 }
 

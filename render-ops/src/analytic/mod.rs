@@ -304,6 +304,103 @@ struct Scratch {
     cover: Vec<Cover>,
 }
 
+/// One row's pixels as the forward solved them, kept for the backward, which chains through
+/// the same pieces instead of solving the pixels again. Per column (CSR, `width + 1` offsets):
+/// its lines (only those that bound a kept piece, renumbered in their order, so the backward
+/// adds in the same order as over the full table) and its candidates' faces (by slot); per
+/// fragment of the row in order, its [`Frag`] with the piece range into `pieces`. A fragment
+/// bounded by pixel sides only (the whole square) keeps no piece: its area and centroid do not
+/// move with the geometry.
+struct KeptRow {
+    line_off: Vec<u32>,
+    slot_off: Vec<u32>,
+    line_val: Vec<[f64; 3]>,
+    line_kind: Vec<LineKind>,
+    slot_face: Vec<u32>,
+    frags: Vec<Frag>,
+    /// Piece vertices, with column-local line ids.
+    polys: Polys,
+    pieces: Vec<Poly>,
+}
+
+impl KeptRow {
+    fn new(width: usize) -> Self {
+        let mut line_off = Vec::with_capacity(width + 1);
+        line_off.push(0);
+        KeptRow {
+            slot_off: line_off.clone(),
+            line_off,
+            line_val: Vec::new(),
+            line_kind: Vec::new(),
+            slot_face: Vec::new(),
+            frags: Vec::new(),
+            polys: Polys::default(),
+            pieces: Vec::new(),
+        }
+    }
+
+    /// A column without candidates.
+    fn skip(&mut self) {
+        self.line_off.push(self.line_val.len() as u32);
+        self.slot_off.push(self.slot_face.len() as u32);
+    }
+
+    /// Keeps the next column's solution `sc` (`map`: scratch for the line renumbering).
+    fn keep(&mut self, sc: &Scratch, map: &mut Vec<u32>) {
+        let moves = |fr: &Frag| {
+            !fr.whole
+                && sc.out[fr.pieces.0 as usize..fr.pieces.1 as usize]
+                    .iter()
+                    .any(|p| {
+                        sc.polys.line[p.start as usize..(p.start + p.len) as usize]
+                            .iter()
+                            .any(|&l| sc.lines.kind[l as usize] != LineKind::Pixel)
+                    })
+        };
+        map.clear();
+        map.resize(sc.lines.val.len(), u32::MAX);
+        for fr in sc.frags.iter().filter(|fr| moves(fr)) {
+            for p in &sc.out[fr.pieces.0 as usize..fr.pieces.1 as usize] {
+                for &l in &sc.polys.line[p.start as usize..(p.start + p.len) as usize] {
+                    map[l as usize] = 0;
+                }
+            }
+        }
+        let mut n = 0u32;
+        for (id, m) in map.iter_mut().enumerate() {
+            if *m == 0 {
+                *m = n;
+                n += 1;
+                self.line_val.push(sc.lines.val[id]);
+                self.line_kind.push(sc.lines.kind[id]);
+            }
+        }
+        self.slot_face.extend(sc.cands.iter().map(|c| c.face));
+        self.skip();
+        for fr in &sc.frags {
+            let start = self.pieces.len() as u32;
+            if moves(fr) {
+                for p in &sc.out[fr.pieces.0 as usize..fr.pieces.1 as usize] {
+                    let (a, b) = (p.start as usize, (p.start + p.len) as usize);
+                    let vs = self.polys.vert.len() as u32;
+                    self.polys.vert.extend_from_slice(&sc.polys.vert[a..b]);
+                    self.polys
+                        .line
+                        .extend(sc.polys.line[a..b].iter().map(|&l| map[l as usize]));
+                    self.pieces.push(Poly {
+                        start: vs,
+                        len: p.len,
+                    });
+                }
+            }
+            self.frags.push(Frag {
+                pieces: (start, self.pieces.len() as u32),
+                ..*fr
+            });
+        }
+    }
+}
+
 /// Solves pixel `(col, row)` over candidate faces `cands` (increasing index): fills
 /// `sc.frags` (nearest first) with their pieces in `sc.out`.
 fn solve_pixel(col: usize, row: usize, cands: &[u32], geos: &[FaceGeo], sc: &mut Scratch) {
@@ -829,7 +926,7 @@ pub fn analytic_fragments<'t, T: Real>(
         })
         .collect();
     let persp = s.perspective_correct;
-    let per_row: Vec<(Vec<Rec>, Vec<u32>)> = (0..h)
+    let per_row: Vec<(Vec<Rec>, Vec<u32>, KeptRow)> = (0..h)
         .into_par_iter()
         .map(|row| {
             let mut sc = Scratch::default();
@@ -837,12 +934,16 @@ pub fn analytic_fragments<'t, T: Real>(
             bins.columns(row, &dense, w, &mut off, &mut cand);
             let mut recs = Vec::new();
             let mut counts = vec![0u32; w];
+            let mut kept = KeptRow::new(w);
+            let mut map = Vec::new();
             for col in 0..w {
                 let cs = &cand[off[col] as usize..off[col + 1] as usize];
                 if cs.is_empty() {
+                    kept.skip();
                     continue;
                 }
                 solve_pixel(col, row, cs, &dense, &mut sc);
+                kept.keep(&sc, &mut map);
                 for fr in &sc.frags {
                     let face = sc.cands[fr.slot as usize].face;
                     let g = &dense[face as usize];
@@ -857,11 +958,11 @@ pub fn analytic_fragments<'t, T: Real>(
                 }
                 counts[col] = sc.frags.len() as u32;
             }
-            (recs, counts)
+            (recs, counts, kept)
         })
         .collect();
     let mut offsets = vec![0u32; w * h + 1];
-    for (row, (_, counts)) in per_row.iter().enumerate() {
+    for (row, (_, counts, _)) in per_row.iter().enumerate() {
         for col in 0..w {
             let p = row * w + col;
             offsets[p + 1] = offsets[p] + counts[col];
@@ -871,7 +972,7 @@ pub fn analytic_fragments<'t, T: Real>(
         .map(|p| (offsets[p + 1] - offsets[p]) as usize)
         .max()
         .unwrap_or(0);
-    let recs: Vec<&Rec> = per_row.iter().flat_map(|(r, _)| r.iter()).collect();
+    let recs: Vec<&Rec> = per_row.iter().flat_map(|(r, _, _)| r.iter()).collect();
     let deriv = s.barycentric_derivatives;
     let fragments = Fragments {
         width: w,
@@ -903,7 +1004,7 @@ pub fn analytic_fragments<'t, T: Real>(
         area,
         faces: faces.clone(),
         geos: dense,
-        bins,
+        kept: per_row.into_iter().map(|(_, _, k)| k).collect(),
         persp,
     };
     let outs = clip.tape().apply_multi(op, &[clip], 4);
@@ -924,7 +1025,8 @@ struct AnalyticOp<T: Real> {
     area: Vec<T>,
     faces: Arc<Vec<[u32; 3]>>,
     geos: Vec<FaceGeo>,
-    bins: RowBins,
+    /// Per row, the forward's solution of its pixels.
+    kept: Vec<KeptRow>,
     persp: bool,
 }
 
@@ -966,9 +1068,7 @@ impl<T: Real> Op<T> for AnalyticOp<T> {
                 if !(first..last).any(nz) {
                     return out;
                 }
-                let mut sc = Scratch::default();
-                let (mut off, mut cand) = (Vec::new(), Vec::new());
-                self.bins.columns(row, &self.geos, w, &mut off, &mut cand);
+                let kr = &self.kept[row];
                 let mut gline: Vec<[f64; 3]> = Vec::new();
                 let mut fg: Vec<FaceGrad> = Vec::new();
                 for col in 0..w {
@@ -977,20 +1077,20 @@ impl<T: Real> Op<T> for AnalyticOp<T> {
                     if !(a..b).any(nz) {
                         continue;
                     }
-                    let cs = &cand[off[col] as usize..off[col + 1] as usize];
-                    solve_pixel(col, row, cs, &self.geos, &mut sc);
-                    debug_assert_eq!(sc.frags.len(), b - a);
+                    let (l0, l1) = (kr.line_off[col] as usize, kr.line_off[col + 1] as usize);
+                    let (s0, s1) = (kr.slot_off[col] as usize, kr.slot_off[col + 1] as usize);
+                    let (lval, slot_face) = (&kr.line_val[l0..l1], &kr.slot_face[s0..s1]);
                     gline.clear();
-                    gline.resize(sc.lines.val.len(), [0.0; 3]);
+                    gline.resize(l1 - l0, [0.0; 3]);
                     fg.clear();
-                    fg.resize(sc.cands.len(), FaceGrad::default());
-                    for (j, fr) in sc.frags.iter().enumerate() {
+                    fg.resize(s1 - s0, FaceGrad::default());
+                    for (j, fr) in kr.frags[a - first..b - first].iter().enumerate() {
                         let i = a + j;
                         if !nz(i) {
                             continue;
                         }
                         let slot = fr.slot as usize;
-                        let g = &self.geos[sc.cands[slot].face as usize];
+                        let g = &self.geos[slot_face[slot] as usize];
                         let area = fr.mom[0];
                         let c = [fr.mom[1] / area, fr.mom[2] / area];
                         let gc = fg[slot].at_centroid(
@@ -1011,15 +1111,15 @@ impl<T: Real> Op<T> for AnalyticOp<T> {
                             gc[0] / area,
                             gc[1] / area,
                         ];
-                        for &pc in &sc.out[fr.pieces.0 as usize..fr.pieces.1 as usize] {
-                            sc.polys.moments_backward(&sc.lines, pc, gm, &mut gline);
+                        for &pc in &kr.pieces[fr.pieces.0 as usize..fr.pieces.1 as usize] {
+                            kr.polys.moments_backward(lval, pc, gm, &mut gline);
                         }
                     }
                     for (id, gl) in gline.iter().enumerate() {
                         if *gl == [0.0; 3] {
                             continue;
                         }
-                        match sc.lines.kind[id] {
+                        match kr.line_kind[l0 + id] {
                             LineKind::Pixel => {}
                             LineKind::Edge { f, k, sign } => {
                                 let ge = &mut fg[f as usize].ge[k as usize];
@@ -1050,7 +1150,7 @@ impl<T: Real> Op<T> for AnalyticOp<T> {
                         if zero {
                             continue;
                         }
-                        let face = sc.cands[slot].face;
+                        let face = slot_face[slot];
                         out.push((face, g.to_clip(&self.geos[face as usize], w, h)));
                     }
                 }

@@ -270,9 +270,16 @@ impl Polys {
         b
     }
 
-    /// The backward of [`Polys::moments`] through the vertices to the lines: adds to
-    /// `gline[id]` the gradient of `g . (A, Mx, My)`.
-    pub fn moments_backward(&self, lines: &Lines, p: Poly, g: [f64; 3], gline: &mut [[f64; 3]]) {
+    /// The backward of [`Polys::moments`] through the vertices to the lines (values `lines`,
+    /// indexed by the vertices' line ids): adds to `gline[id]` the gradient of
+    /// `g . (A, Mx, My)`.
+    pub fn moments_backward(
+        &self,
+        lines: &[[f64; 3]],
+        p: Poly,
+        g: [f64; 3],
+        gline: &mut [[f64; 3]],
+    ) {
         let (s, n) = (p.start as usize, p.len as usize);
         let mut gv = [[0.0f64; 2]; 64];
         if n > 64 {
@@ -293,7 +300,7 @@ impl Polys {
         for k in 0..n {
             let la = self.line[s + (k + n - 1) % n] as usize;
             let lb = self.line[s + k] as usize;
-            let (a, b) = (lines.val[la], lines.val[lb]);
+            let (a, b) = (lines[la], lines[lb]);
             let h = cross(&a, &b);
             if h[2] == 0.0 {
                 continue;
@@ -381,7 +388,7 @@ mod tests {
         assert!((m[0] - exact).abs() < 1e-15, "{m:?}");
         // dA/dc = length of the cut / |grad l| = (1 - t) sqrt(2) / sqrt(2).
         let mut g = vec![[0.0; 3]; lines.val.len()];
-        polys.moments_backward(&lines, p, [1.0, 0.0, 0.0], &mut g);
+        polys.moments_backward(&lines.val, p, [1.0, 0.0, 0.0], &mut g);
         assert!(
             (g[h as usize][2] - (1.0 - t)).abs() < 1e-14,
             "{:?}",
@@ -402,7 +409,7 @@ mod tests {
             let mut g = vec![[0.0; 3]; lines.val.len()];
             let mut w = [0.0; 3];
             w[i] = 1.0;
-            polys.moments_backward(&lines, p, w, &mut g);
+            polys.moments_backward(&lines.val, p, w, &mut g);
             let fd = (a[i] - b[i]) / (2.0 * eps);
             assert!(
                 (g[h as usize][2] - fd).abs() < 1e-8,

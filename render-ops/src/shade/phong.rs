@@ -22,9 +22,7 @@
 //! whose derivative `spec ln(base)` would be `0 * -inf` there). All normalisations are the
 //! safe `x / max(|x|, eps)` of the [module docs](super).
 
-use autodiff::{
-    tensor, AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var,
-};
+use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 
 use super::lights::{Lights, Material, Reflectance};
@@ -543,6 +541,10 @@ pub fn shade<'t, T: Real>(
 }
 
 /// [`shade`] composed from tape ops: the reference, and a template for custom shaders.
+///
+/// Written with ops the tape's fused evaluation handles (the "facing the light" mask is
+/// [`Var::heaviside`], not a mask read from a value), so that inside [`autodiff::Tape::fused`]
+/// the whole model is one fused op.
 pub fn shade_composed<'t, T: Real>(
     surface: &Surface<'t, T>,
     material: &Material<'t, T>,
@@ -551,12 +553,12 @@ pub fn shade_composed<'t, T: Real>(
 ) -> Var<'t, T> {
     let t = surface.position.tape();
     let eps = T::from_f64c(SAFE_EPS);
-    let nrows = surface.position.shape().first().copied().unwrap_or(0);
     let n = surface.normal.normalize(eps);
     let ka = material.ka.unwrap_or(surface.albedo);
-    let mut col = t.constant(ArrayD::zeros(IxDyn(&[nrows, 3])));
+    let mut col: Option<Var<'t, T>> = None;
+    let mut add = |term: Var<'t, T>| col = Some(col.map_or(term, |c| c + term));
     for a in &lights.ambient {
-        col = col + ka * a.color.reshape(&[3]);
+        add(ka * a.color.reshape(&[3]));
     }
     let specular = material.model != Reflectance::Lambert;
     let v = (eye.reshape(&[3]) - surface.position).normalize(eps);
@@ -572,16 +574,11 @@ pub fn shade_composed<'t, T: Real>(
                 }
                 _ => (n * (l + v).normalize(eps)).sum_axes(&[-1], true),
             };
-            let spec = base.relu().pow(material.shininess.reshape(&[1]));
             // No highlight where the surface faces away from the light.
-            let facing = ndl
-                .value()
-                .map(|x| x.mapv(|c| c > T::zero()))
-                .unwrap_or_else(|_| ArrayD::from_elem(IxDyn(&[]), false));
-            let zero = t.constant(tensor::scalar(T::zero()));
-            refl = refl + material.ks * spec.where_(facing, zero);
+            let spec = base.relu().pow(material.shininess.reshape(&[1])) * ndl.heaviside();
+            refl = refl + material.ks * spec;
         }
-        col = col + refl * color.reshape(&[3]);
+        add(refl * color.reshape(&[3]));
     };
     for d in &lights.directional {
         let l = (-d.direction.reshape(&[3])).normalize(eps);
@@ -591,5 +588,13 @@ pub fn shade_composed<'t, T: Real>(
         let l = (p.position.reshape(&[3]) - surface.position).normalize(eps);
         add_light(l, p.color);
     }
-    col
+    // `[N, 3]` also when no term varies by fragment (ambient light only, constant `ka`).
+    let nrows = surface.position.shape().first().copied().unwrap_or(0);
+    match col {
+        Some(c) if c.shape() == [nrows, 3] => c,
+        c => {
+            let zero = t.constant(ArrayD::zeros(IxDyn(&[nrows, 3])));
+            c.map_or(zero, |c| zero + c)
+        }
+    }
 }

@@ -202,37 +202,53 @@ pub fn sh_basis<T: Real>(normals: &Tensor<T>) -> Tensor<T> {
     ArrayD::from_shape_vec(IxDyn(&[n, 9]), data).expect("n x 9")
 }
 
+/// The 9 basis values `[N, 1]` each at normals `[N, 3]` (normalised inside), composed from
+/// tape ops (differentiable); `Y_00`, a constant, is `None`.
+fn sh_basis_terms<'t, T: Real>(normal: Var<'t, T>) -> [Option<Var<'t, T>>; 9] {
+    let n = normal.normalize(T::from_f64c(SAFE_EPS));
+    let (x, y, z) = (n.slice(1, 0, 1), n.slice(1, 1, 2), n.slice(1, 2, 3));
+    let c = |v: f64| T::from_f64c(v);
+    [
+        None,
+        Some(y * c(SH_C1)),
+        Some(z * c(SH_C1)),
+        Some(x * c(SH_C1)),
+        Some(x * y * c(SH_C2)),
+        Some(y * z * c(SH_C2)),
+        Some((z * z * c(3.0) - c(1.0)) * c(SH_C3)),
+        Some(x * z * c(SH_C2)),
+        Some((x * x - y * y) * c(SH_C4)),
+    ]
+}
+
 /// The basis `[N, 9]` at normals `[N, 3]`, composed from tape ops (differentiable).
 pub fn sh_basis_composed<'t, T: Real>(normal: Var<'t, T>) -> Var<'t, T> {
     let t = normal.tape();
     let nrows = normal.shape().first().copied().unwrap_or(0);
-    let n = normal.normalize(T::from_f64c(SAFE_EPS));
-    let (x, y, z) = (n.slice(1, 0, 1), n.slice(1, 1, 2), n.slice(1, 2, 3));
-    let c = |v: f64| T::from_f64c(v);
-    let y0 = t.constant(ArrayD::from_elem(IxDyn(&[nrows, 1]), c(SH_C0)));
-    t.concat(
-        &[
-            y0,
-            y * c(SH_C1),
-            z * c(SH_C1),
-            x * c(SH_C1),
-            x * y * c(SH_C2),
-            y * z * c(SH_C2),
-            (z * z * c(3.0) - c(1.0)) * c(SH_C3),
-            x * z * c(SH_C2),
-            (x * x - y * y) * c(SH_C4),
-        ],
-        1,
-    )
+    let y0 = t.constant(ArrayD::from_elem(IxDyn(&[nrows, 1]), T::from_f64c(SH_C0)));
+    let terms: Vec<Var<'t, T>> = sh_basis_terms(normal)
+        .into_iter()
+        .map(|y| y.unwrap_or(y0))
+        .collect();
+    t.concat(&terms, 1)
 }
 
-/// [`sh_shade`] composed from tape ops: `albedo * (basis(n) @ coeffs)`.
+/// [`sh_shade`] composed from tape ops: `albedo * sum_k Y_k(n) sh_k`, the product with the
+/// coefficients written as a sum of broadcast products (no `[N, 9]` basis, no matrix
+/// product), so that inside [`autodiff::Tape::fused`] the whole model is one fused op.
 pub fn sh_shade_composed<'t, T: Real>(
     normal: Var<'t, T>,
     albedo: Var<'t, T>,
     coeffs: Var<'t, T>,
 ) -> Var<'t, T> {
-    albedo * sh_basis_composed(normal).matmul(coeffs)
+    let row = |k: usize| coeffs.slice(0, k, k + 1).reshape(&[3]);
+    let mut e = row(0) * T::from_f64c(SH_C0);
+    for (k, y) in sh_basis_terms(normal).into_iter().enumerate() {
+        if let Some(y) = y {
+            e = e + y * row(k);
+        }
+    }
+    albedo * e
 }
 
 #[cfg(test)]
