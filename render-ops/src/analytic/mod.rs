@@ -38,8 +38,11 @@
 //! lines, depth-intersection lines), so the areas and moments are smooth functions of the clip
 //! coordinates away from measure-zero configurations; [`polygon::Polys::moments_backward`]
 //! chains the shoelace formula through the line intersections (Reynolds transport in discrete
-//! form), and each line to its faces' clip coordinates. The backward re-solves each pixel with
-//! the forward's code (bit-identical pieces) instead of storing them.
+//! form), and each line to its faces' clip coordinates. The forward keeps, per row, the pieces
+//! that move with the geometry and the lines bounding them (`KeptRow`; a fragment that is the
+//! whole square keeps none), and the backward chains through those instead of solving the
+//! pixels again: memory for speed (`tapestry bench --quick`, 5120-face sphere at 64 x 64: peak
+//! 9.4 MiB, `deodr` 2.7 MiB).
 //!
 //! # Cost and determinism
 //! Faces are binned by rows of their conservative pixel boxes; rows run in parallel, each
