@@ -208,7 +208,13 @@ impl<'t, T: Real> Var<'t, T> {
     }
 
     /// Same elements, new shape.
+    ///
+    /// To its own shape it is `self`, with nothing recorded (as a view in PyTorch): a shader
+    /// that reshapes a light's `[3]` colour to `[3]` keeps its fused region whole.
     pub fn reshape(self, shape: &[usize]) -> Self {
+        if self.shape() == shape {
+            return self;
+        }
         self.tape().apply(ReshapeOp(shape.to_vec()), &[self])
     }
     /// Axes reordered: output axis `i` is input axis `perm[i]`.

@@ -575,7 +575,8 @@ pub fn shade_composed<'t, T: Real>(
                 _ => (n * (l + v).normalize(eps)).sum_axes(&[-1], true),
             };
             // No highlight where the surface faces away from the light.
-            let spec = base.relu().pow(material.shininess.reshape(&[1])) * ndl.heaviside();
+            // `[]` or `[1]`: either broadcasts over the fragments, no reshape op recorded.
+            let spec = base.relu().pow(material.shininess) * ndl.heaviside();
             refl = refl + material.ks * spec;
         }
         add(refl * color.reshape(&[3]));

@@ -429,6 +429,67 @@ fn reflection_models_fused_equal_composed() {
     );
 }
 
+/// The composed Phong family and SH use only ops the tape fuses, so inside `Tape::fused` each
+/// model's per-fragment work is ONE fused op (no mask read from a value, no concat or matrix
+/// product ending the region), and that op agrees with the hand-fused one and passes
+/// gradcheck. (SH's coefficient rows are sliced on the tape before the region: ops on 27
+/// numbers, not recorded when the coefficients are constants, as in the count below.)
+#[test]
+fn composed_models_are_one_fused_op() {
+    /// Ops recorded by `f`, with the inputs numbered in `constant` as constants.
+    fn ops_of(f: Build, inputs: &[Tensor<f64>], constant: &[usize]) -> usize {
+        let tape = Tape::new();
+        let vars: Vec<_> = inputs
+            .iter()
+            .enumerate()
+            .map(|(i, x)| tape.var(x.clone(), !constant.contains(&i)))
+            .collect();
+        let before = tape.num_ops();
+        let y = f(&tape, &vars);
+        tape.materialize(&[y]);
+        tape.num_ops() - before
+    }
+    let inputs = phong_inputs();
+    let cases: [(&str, Build, Build); 3] = [
+        (
+            "lambert",
+            |_t, v| phong_with(Reflectance::Lambert, true, true, v),
+            |t, v| t.fused(|| phong_with(Reflectance::Lambert, false, true, v)),
+        ),
+        (
+            "phong",
+            |_t, v| phong_with(Reflectance::Phong, true, true, v),
+            |t, v| t.fused(|| phong_with(Reflectance::Phong, false, true, v)),
+        ),
+        (
+            "blinn/ka=albedo",
+            |_t, v| phong_with(Reflectance::BlinnPhong, true, false, v),
+            |t, v| t.fused(|| phong_with(Reflectance::BlinnPhong, false, false, v)),
+        ),
+    ];
+    let opts = GradcheckOptions::default();
+    for (name, hand, composed) in cases {
+        let n_fused = ops_of(composed, &inputs, &[]);
+        assert_eq!(n_fused, 1, "{name}: {n_fused} ops in the fused region");
+        agree(name, hand, composed, &inputs, 1e-10);
+        check(name, gradcheck(composed, &inputs, &opts).unwrap());
+    }
+    let sh: (Build, Build) = (
+        |_t, v| sh_shade(v[0], v[1], v[2]),
+        |t, v| t.fused(|| sh_shade_composed(v[0], v[1], v[2])),
+    );
+    for shared in [false, true] {
+        let inputs = sh_inputs(shared);
+        assert_eq!(
+            ops_of(sh.1, &inputs, &[2]),
+            1,
+            "sh (shared albedo {shared})"
+        );
+        agree("sh", sh.0, sh.1, &inputs, 1e-10);
+        check("sh", gradcheck(sh.1, &inputs, &opts).unwrap());
+    }
+}
+
 #[test]
 fn grazing_light_and_huge_shininess() {
     // Light exactly and nearly tangent to the surface: finite values and gradients, diffuse
