@@ -562,8 +562,7 @@ impl<T: Real> Tape<T> {
             }
             rg |= s.requires_grad;
         }
-        // A step has no gradient: nothing flows back through it.
-        rg &= !self.is_no_grad() && kind != Kind::Unary(crate::ops::elementwise::Unary::Heaviside);
+        rg &= !self.is_no_grad() && !matches!(kind, Kind::Unary(k) if !k.has_gradient());
         let mut largs: SmallVec<[LazyArg; 3]> = SmallVec::new();
         if let Some(m) = mask {
             largs.push(LazyArg::Mask(inner.masks.len() as u32));

@@ -42,7 +42,12 @@ impl<'t, T: Real> Var<'t, T> {
         if let Some(v) = self.lazy(Kind::Unary(k), &[self], None) {
             return v;
         }
-        self.tape().apply(UnaryOp(k), &[self])
+        let x = if k.has_gradient() {
+            self
+        } else {
+            self.detach()
+        };
+        self.tape().apply(UnaryOp(k), &[x])
     }
     fn binary(self, k: Binary, o: Self) -> Self {
         if k == Binary::Mul && self.id() == o.id() && std::ptr::eq(self.tape(), o.tape()) {

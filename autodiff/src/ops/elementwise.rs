@@ -86,6 +86,12 @@ impl<T: Real> Unary<T> {
             Unary::Heaviside => "heaviside",
         }
     }
+
+    /// False for a step, whose derivative is 0 almost everywhere: nothing flows back through
+    /// it, so the tape records it as not requiring a gradient (eager and fused alike).
+    pub fn has_gradient(&self) -> bool {
+        !matches!(self, Unary::Heaviside)
+    }
 }
 
 /// A numerically stable logistic function.

@@ -736,3 +736,27 @@ fn pending_variables_have_shapes() {
     let s = 3f32.sqrt().recip();
     assert!((z.value().unwrap()[[0]] - 3.0 * s).abs() < 1e-6);
 }
+
+/// A step has no gradient: eager and fused, its output does not require one, and a loss that
+/// reaches the input only through it leaves the input's gradient zero.
+#[test]
+fn heaviside_records_no_gradient() {
+    let tape = Tape::<f64>::new();
+    let x = tape.leaf(ArrayD::from_shape_vec(IxDyn(&[4, 1]), vec![-1.0, 0.0, 0.5, 2.0]).unwrap());
+    let eager = x.heaviside();
+    assert!(!eager.requires_grad());
+    assert_eq!(
+        eager.value().unwrap().iter().copied().collect::<Vec<_>>(),
+        vec![0.0, 0.0, 1.0, 1.0]
+    );
+    let fused = tape.fused(|| {
+        let y = (x * 2.0).heaviside();
+        assert!(!y.requires_grad());
+        y * x
+    });
+    let g = tape.backward(fused.sum()).unwrap();
+    assert_eq!(
+        g.wrt(x).iter().copied().collect::<Vec<_>>(),
+        vec![0.0, 0.0, 1.0, 1.0]
+    );
+}

@@ -348,26 +348,30 @@ impl KeptRow {
         self.slot_off.push(self.slot_face.len() as u32);
     }
 
-    /// Keeps the next column's solution `sc` (`map`: scratch for the line renumbering).
-    fn keep(&mut self, sc: &Scratch, map: &mut Vec<u32>) {
-        let moves = |fr: &Frag| {
-            !fr.whole
-                && sc.out[fr.pieces.0 as usize..fr.pieces.1 as usize]
-                    .iter()
-                    .any(|p| {
-                        sc.polys.line[p.start as usize..(p.start + p.len) as usize]
-                            .iter()
-                            .any(|&l| sc.lines.kind[l as usize] != LineKind::Pixel)
-                    })
-        };
+    /// Keeps the next column's solution `sc` (`map`, `moves`: scratch for the line renumbering
+    /// and for which fragments move with the geometry).
+    fn keep(&mut self, sc: &Scratch, map: &mut Vec<u32>, moves: &mut Vec<bool>) {
+        let pieces = |fr: &Frag| &sc.out[fr.pieces.0 as usize..fr.pieces.1 as usize];
+        let lines = |p: &Poly| &sc.polys.line[p.start as usize..(p.start + p.len) as usize];
         map.clear();
         map.resize(sc.lines.val.len(), u32::MAX);
-        for fr in sc.frags.iter().filter(|fr| moves(fr)) {
-            for p in &sc.out[fr.pieces.0 as usize..fr.pieces.1 as usize] {
-                for &l in &sc.polys.line[p.start as usize..(p.start + p.len) as usize] {
-                    map[l as usize] = 0;
+        moves.clear();
+        for fr in &sc.frags {
+            // A fragment bounded by pixel sides only does not move.
+            let m = !fr.whole
+                && pieces(fr).iter().any(|p| {
+                    lines(p)
+                        .iter()
+                        .any(|&l| sc.lines.kind[l as usize] != LineKind::Pixel)
+                });
+            if m {
+                for p in pieces(fr) {
+                    for &l in lines(p) {
+                        map[l as usize] = 0;
+                    }
                 }
             }
+            moves.push(m);
         }
         let mut n = 0u32;
         for (id, m) in map.iter_mut().enumerate() {
@@ -380,16 +384,16 @@ impl KeptRow {
         }
         self.slot_face.extend(sc.cands.iter().map(|c| c.face));
         self.skip();
-        for fr in &sc.frags {
+        for (fr, &m) in sc.frags.iter().zip(moves.iter()) {
             let start = self.pieces.len() as u32;
-            if moves(fr) {
-                for p in &sc.out[fr.pieces.0 as usize..fr.pieces.1 as usize] {
-                    let (a, b) = (p.start as usize, (p.start + p.len) as usize);
+            if m {
+                for p in pieces(fr) {
                     let vs = self.polys.vert.len() as u32;
+                    let (a, b) = (p.start as usize, (p.start + p.len) as usize);
                     self.polys.vert.extend_from_slice(&sc.polys.vert[a..b]);
                     self.polys
                         .line
-                        .extend(sc.polys.line[a..b].iter().map(|&l| map[l as usize]));
+                        .extend(lines(p).iter().map(|&l| map[l as usize]));
                     self.pieces.push(Poly {
                         start: vs,
                         len: p.len,
@@ -938,7 +942,7 @@ pub fn analytic_fragments<'t, T: Real>(
             let mut recs = Vec::new();
             let mut counts = vec![0u32; w];
             let mut kept = KeptRow::new(w);
-            let mut map = Vec::new();
+            let (mut map, mut moves) = (Vec::new(), Vec::new());
             for col in 0..w {
                 let cs = &cand[off[col] as usize..off[col + 1] as usize];
                 if cs.is_empty() {
@@ -946,7 +950,7 @@ pub fn analytic_fragments<'t, T: Real>(
                     continue;
                 }
                 solve_pixel(col, row, cs, &dense, &mut sc);
-                kept.keep(&sc, &mut map);
+                kept.keep(&sc, &mut map, &mut moves);
                 for fr in &sc.frags {
                     let face = sc.cands[fr.slot as usize].face;
                     let g = &dense[face as usize];
