@@ -44,6 +44,13 @@ const PARTS: [(&str, [usize; 2], [usize; 2], usize); 4] = [
     ("eyeball left", [21451, 23021], [21496, 23094], 2),
     ("eyeball right", [23021, 24591], [23094, 24692], 2),
 ];
+/// ICT's "Narrow face area" (README, "Face Area Details"): polygons 0..6560 and vertices
+/// 0..6706 of the face area; its triangles are the region `skin`, the rest of the face area
+/// (forehead to the hairline's edge, temples, ears, jaw underside and neck) is `face_outer`.
+const NARROW_FACE_POLYGONS: usize = 6560;
+const NARROW_FACE_VERTICES: usize = 6706;
+/// Region labels (the order of `regions` in `model.json`).
+const FACE_OUTER: u8 = 3;
 /// Radius of the iris (cm; human irises are 11-12 mm across).
 const IRIS_RADIUS: f64 = 0.58;
 /// Region names and mean albedo (linear RGB) of the regions other than skin.
@@ -253,57 +260,6 @@ fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<Vec<f64>>) -> Res<Vec<Vec<f64>>> {
     Ok(b)
 }
 
-/// Similarity transform `x -> s R x + t` taking `src` onto `dst` in the least-squares sense
-/// (Umeyama 1991), as a function.
-fn similarity(src: &[[f64; 3]], dst: &[[f64; 3]]) -> impl Fn([f64; 3]) -> [f64; 3] {
-    let n = src.len() as f64;
-    let mean = |p: &[[f64; 3]]| -> [f64; 3] {
-        std::array::from_fn(|i| p.iter().map(|q| q[i]).sum::<f64>() / n)
-    };
-    let (ms, md) = (mean(src), mean(dst));
-    let mut cov = [[0.0; 3]; 3];
-    let mut var = 0.0;
-    for (s, d) in src.iter().zip(dst) {
-        let (s, d) = (sub(*s, ms), sub(*d, md));
-        var += dot(s, s);
-        for i in 0..3 {
-            for j in 0..3 {
-                cov[i][j] += d[i] * s[j];
-            }
-        }
-    }
-    // Rotation from the polar decomposition of cov (Higham iteration), which equals U V^T.
-    let mut r = cov;
-    for _ in 0..100 {
-        let inv_t = inverse_transpose(r);
-        for i in 0..3 {
-            for j in 0..3 {
-                r[i][j] = 0.5 * (r[i][j] + inv_t[i][j]);
-            }
-        }
-    }
-    let mut tr = 0.0;
-    for i in 0..3 {
-        for j in 0..3 {
-            tr += r[i][j] * cov[i][j];
-        }
-    }
-    let s = tr / var;
-    move |p: [f64; 3]| {
-        let q = sub(p, ms);
-        std::array::from_fn(|i| s * dot(r[i], q) + md[i])
-    }
-}
-
-fn inverse_transpose(m: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    let c0 = cross(m[1], m[2]);
-    let c1 = cross(m[2], m[0]);
-    let c2 = cross(m[0], m[1]);
-    let det = dot(m[0], c0);
-    // (M^-1)^T = cofactor matrix / det; its rows are the cross products above.
-    [c0, c1, c2].map(|r| r.map(|x| x / det))
-}
-
 /// A 3-D thin-plate spline (kernel |r|) with an affine part through `src -> dst`.
 fn thin_plate(src: &[[f64; 3]], dst: &[[f64; 3]]) -> Res<impl Fn([f64; 3]) -> [f64; 3]> {
     let n = src.len();
@@ -502,11 +458,30 @@ fn run() -> Res<()> {
     for (name, _, f, region) in PARTS {
         let t = triangulate(&mean, &neutral.f[f[0]..f[1]], &map)?;
         eprintln!("{name}: {} polygons -> {} triangles", f[1] - f[0], t.len());
-        labels.extend(std::iter::repeat_n(region as u8, t.len()));
+        if region == 0 {
+            let narrow = &neutral.f[f[0]..NARROW_FACE_POLYGONS];
+            if let Some(v) = narrow
+                .iter()
+                .flatten()
+                .map(|&(v, _)| v)
+                .find(|&v| v >= NARROW_FACE_VERTICES)
+            {
+                return Err(format!("a narrow-face polygon uses vertex {v}"));
+            }
+            let n = triangulate(&mean, narrow, &map)?.len();
+            eprintln!("narrow face: {} polygons -> {n} triangles", narrow.len());
+            labels.extend(std::iter::repeat_n(0u8, n));
+            labels.extend(std::iter::repeat_n(FACE_OUTER, t.len() - n));
+        } else {
+            labels.extend(std::iter::repeat_n(region as u8, t.len()));
+        }
         tris.extend(t);
         polys.extend_from_slice(&neutral.f[f[0]..f[1]]);
     }
-    let n_face_tris = labels.iter().take_while(|&&l| l == 0).count();
+    let n_face_tris = labels
+        .iter()
+        .take_while(|&&l| l == 0 || l == FACE_OUTER)
+        .count();
     // Orientation: the area-weighted normal of the face area must point to +z (the face looks
     // towards +z).
     let nz: f64 = tris[..n_face_tris]
@@ -673,8 +648,8 @@ fn run() -> Res<()> {
         })
         .collect();
     let dst68: Vec<[f64; 3]> = ICT_IBUG68.iter().map(|&i| mean[i]).collect();
-    let sim = similarity(&src68, &dst68);
-    let src68s: Vec<[f64; 3]> = src68.iter().map(|&p| sim(p)).collect();
+    let sim = models::fit::umeyama(&src68, &dst68, true);
+    let src68s: Vec<[f64; 3]> = src68.iter().map(|&p| sim.apply(p)).collect();
     let rms = |a: &[[f64; 3]], b: &[[f64; 3]]| {
         (a.iter()
             .zip(b)
@@ -692,7 +667,7 @@ fn run() -> Res<()> {
     let mut points = Vec::with_capacity(468);
     let mut snap = Vec::with_capacity(468);
     for i in 0..mp.n_vertices() {
-        let (d, f, w) = closest_on_mesh(tps(sim(mp_pt(i))), &mean, face_tris);
+        let (d, f, w) = closest_on_mesh(tps(sim.apply(mp_pt(i))), &mean, face_tris);
         snap.push(10.0 * d);
         points.push((f, w));
     }
@@ -726,7 +701,12 @@ fn run() -> Res<()> {
         "landmark_points": points.iter().map(|(f, w)| json!([f, w[0], w[1], w[2]])).collect::<Vec<_>>(),
         "landmark_scheme": "mediapipe468",
         "landmark_groups": groups,
-        "regions": [{"name": "skin"}, {"name": "mouth_interior"}, {"name": "eyes"}],
+        "regions": [
+            {"name": "skin"},
+            {"name": "mouth_interior", "photometric": false},
+            {"name": "eyes", "photometric": false},
+            {"name": "face_outer", "photometric": false}
+        ],
         "id_names": id_names,
         "exp_names": exp_names,
         "albedo_names": ["red", "green", "blue"],

@@ -122,6 +122,15 @@ struct RegionJson {
     name: String,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     albedo: Option<[f64; 3]>,
+    #[serde(default = "yes", skip_serializing_if = "is_yes")]
+    photometric: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+fn is_yes(b: &bool) -> bool {
+    *b
 }
 
 fn default_units() -> String {
@@ -634,6 +643,7 @@ pub(crate) fn load_from<T: Real>(src: &Source<'_>) -> Result<Morphable<T>> {
         .map(|r| Region {
             name: r.name.clone(),
             albedo: r.albedo,
+            photometric: r.photometric,
         })
         .collect();
     let face_regions = match &j.files.face_regions {
@@ -956,12 +966,13 @@ pub(crate) fn save_to<T: Real>(m: &Morphable<T>, dir: &Path) -> Result<()> {
             .iter()
             .map(|(k, g)| (k.clone(), g.iter().map(|&x| x as i64).collect()))
             .collect(),
-        regions: if labelled || m.regions()[0].albedo.is_some() {
+        regions: if labelled || m.regions()[0].albedo.is_some() || !m.regions()[0].photometric {
             m.regions()
                 .iter()
                 .map(|r| RegionJson {
                     name: r.name.clone(),
                     albedo: r.albedo,
+                    photometric: r.photometric,
                 })
                 .collect()
         } else {

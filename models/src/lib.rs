@@ -1,6 +1,7 @@
 //! Parametric models for Tapestry: a linear (3DMM-style) morphable model of shape and
-//! albedo ([`Morphable`]), its file layout ([`Morphable::load`], [`Morphable::save`]) and a
-//! shipped face model built on the MediaPipe canonical face mesh ([`face`]), and face detection
+//! albedo ([`Morphable`]), its file layout ([`Morphable::load`], [`Morphable::save`]), two
+//! shipped face models (the ICT-FaceKit scan-based model, [`ict`], and a small one built on the
+//! MediaPipe canonical face mesh, [`face`]), and face detection
 //! with the 468 MediaPipe face-mesh landmarks in pure Rust ([`detect`]).
 //!
 //! ```
@@ -20,6 +21,7 @@ pub mod detect;
 pub mod error;
 pub mod face;
 pub mod fit;
+pub mod ict;
 pub mod io;
 pub mod morphable;
 

@@ -28,21 +28,27 @@ use crate::error::{ModelError, Result};
 /// A named group of triangles (skin, lips, mouth interior, ...). Regions with an `albedo`
 /// are drawn with that constant colour instead of the per-vertex albedo when the mesh is
 /// split with [`Morphable::region_split`] (the mouth interior and the eye openings of the
-/// shipped model share their vertices with the surrounding skin).
+/// shipped model share their vertices with the surrounding skin). Regions that are not
+/// `photometric` are rendered (they occlude) but their pixels are left out of a fit's
+/// photometric term and RMSE (the ICT model's eyes, mouth socket and the face area outside
+/// ICT's narrow face: hair, hats, collars and unmodelled eyes must not bias the skin).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Region {
     /// Name, unique within the model.
     pub name: String,
     /// Constant linear-RGB albedo of the region's triangles, if it has its own.
     pub albedo: Option<[f64; 3]>,
+    /// Whether a fit's photometric term uses the pixels this region covers.
+    pub photometric: bool,
 }
 
 impl Region {
-    /// A region without its own albedo.
+    /// A photometric region without its own albedo.
     pub fn new(name: impl Into<String>) -> Self {
         Region {
             name: name.into(),
             albedo: None,
+            photometric: true,
         }
     }
 }
@@ -1043,7 +1049,9 @@ impl<T: Real> Morphable<T> {
 
     /// A render topology in which every region with its own albedo gets its own copies of
     /// its vertices, so that its triangles can be coloured independently of the skin they
-    /// share vertices with (see [`RegionSplit`]).
+    /// share vertices with, and the vertices that photometric and non-photometric triangles
+    /// share are copied for the latter, so that an interpolated per-vertex weight is exactly
+    /// 1 on photometric triangles and 0 on the others (see [`RegionSplit`]).
     pub fn region_split(&self) -> RegionSplit<T> {
         let v = self.n_vertices;
         let mut vertex_map: Vec<usize> = (0..v).collect();
@@ -1066,6 +1074,37 @@ impl<T: Real> Morphable<T> {
                 }
             }
         }
+        // Photometric split: a render vertex used by both kinds of triangle gets a copy for
+        // the non-photometric ones.
+        let photometric = |f: usize| self.regions[self.face_regions[f] as usize].photometric;
+        let n0 = vertex_map.len();
+        let mut used = vec![[false; 2]; n0];
+        for (f, tri) in faces.iter().enumerate() {
+            for &ix in tri {
+                used[ix as usize][usize::from(photometric(f))] = true;
+            }
+        }
+        let mut copy: BTreeMap<u32, u32> = BTreeMap::new();
+        for (f, tri) in faces.iter_mut().enumerate() {
+            if photometric(f) {
+                continue;
+            }
+            for ix in tri.iter_mut() {
+                if used[*ix as usize] == [true, true] {
+                    *ix = *copy.entry(*ix).or_insert_with(|| {
+                        vertex_map.push(vertex_map[*ix as usize]);
+                        colors.push(colors[*ix as usize]);
+                        (vertex_map.len() - 1) as u32
+                    });
+                }
+            }
+        }
+        let photo_weight = used.iter().any(|u| u[0]).then(|| {
+            let w = (0..vertex_map.len())
+                .map(|i| T::from_f64c(if i < n0 && used[i][1] { 1.0 } else { 0.0 }))
+                .collect();
+            Arc::new(ArrayD::from_shape_vec(IxDyn(&[vertex_map.len(), 1]), w).expect("shape"))
+        });
         let n = vertex_map.len();
         let mask = ArrayD::from_shape_fn(IxDyn(&[n, 3]), |i| colors[i[0]].is_none());
         let fill = ArrayD::from_shape_fn(IxDyn(&[n, 3]), |i| {
@@ -1076,6 +1115,7 @@ impl<T: Real> Morphable<T> {
             faces,
             mask,
             fill: Arc::new(fill),
+            photo_weight,
         }
     }
 }
@@ -1176,6 +1216,7 @@ pub struct RegionSplit<T: Real> {
     pub faces: Vec<[u32; 3]>,
     mask: ArrayD<bool>,
     fill: Arc<Tensor<T>>,
+    photo_weight: Option<Arc<Tensor<T>>>,
 }
 
 impl<T: Real> RegionSplit<T> {
@@ -1192,6 +1233,12 @@ impl<T: Real> RegionSplit<T> {
         let tape = albedo.tape();
         let fill = tape.var_shared(self.fill.clone(), false);
         self.gather(albedo).where_(self.mask.clone(), fill)
+    }
+    /// The photometric weight `[V', 1]` of the render vertices (1 on the vertices of
+    /// photometric triangles, 0 on the others' own copies), or `None` when every region is
+    /// photometric.
+    pub fn photo_weight(&self) -> Option<&Arc<Tensor<T>>> {
+        self.photo_weight.as_ref()
     }
     /// Plain version of [`RegionSplit::gather`].
     pub fn gather_plain<A: Clone>(&self, attr: &Array2<A>) -> Array2<A> {

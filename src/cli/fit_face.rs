@@ -1,5 +1,6 @@
-//! `tapestry fit-face`: fits a morphable model (the shipped face model, or any model folder
-//! given with `--model`) to a synthetic target (default) or to a photo (PNG, JPEG or `.npy`,
+//! `tapestry fit-face`: fits a morphable model (the shipped ICT-FaceKit model by default, the
+//! small MediaPipe-mesh model with `--model mediapipe`, or any model folder given with
+//! `--model`) to a synthetic target (default) or to a photo (PNG, JPEG or `.npy`,
 //! any size) with 2D landmarks, and writes the fitted mesh (`fit.obj`, `fit.mtl`,
 //! `albedo.png`), the landmarks (`landmarks.txt`, `detected_landmarks.txt`), the images
 //! (`fit.png`, `overlay.png`, `compare.png`), `params.json`, `loss_curve.svg` and
@@ -29,7 +30,7 @@ pub struct Args {
     pub target: Option<PathBuf>,
     /// Landmark file of the photo (overrides detection).
     pub landmarks: Option<PathBuf>,
-    /// Model folder; `None`: the shipped face model.
+    /// `ict`, `mediapipe` or a model folder; `None`: `ict`.
     pub model: Option<PathBuf>,
     /// Which face of the photo, largest first (detection); 0 with `--landmarks`.
     pub face: usize,
@@ -286,8 +287,17 @@ struct Prepared {
     landmark_seconds: f64,
 }
 
+/// `--model`: `ict` (the default: the shipped ICT-FaceKit model, [`models::ict`]),
+/// `mediapipe` (the small shipped model on the MediaPipe mesh, [`models::face`]) or a model
+/// folder.
 fn load_model(args: &Args) -> Result<Morphable<f64>, CliError> {
-    let model = match &args.model {
+    let dir = match args.model.as_deref() {
+        Some(p) if p == Path::new("mediapipe") => None,
+        Some(p) if p == Path::new("ict") => Some(models::ict::ict_dir()),
+        Some(p) => Some(p.to_path_buf()),
+        None => Some(models::ict::ict_dir()),
+    };
+    let model = match &dir {
         Some(dir) => Morphable::<f64>::load(dir)
             .map_err(|e| CliError::Message(format!("--model {}: {e}", dir.display())))?,
         None => models::face::default_face(),
@@ -481,7 +491,11 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
         .map_err(err)?;
     let fitted_in = to_input_px(&fitted_px, prep.scale);
     let lm_err = fit::landmark_error_px(&fitted_in, &prep.detected);
-    let rmse = fit::photometric_rmse(&img, &target.image);
+    // Inside the photometric mask (the pixels of the model's photometric regions).
+    let rmse = fit::photometric_rmse(
+        &renderer.render_photo(&result.params).map_err(err)?,
+        &target.image,
+    );
     let initial_in = to_input_px(
         &renderer
             .landmarks_px(&result.initial, &target.points)

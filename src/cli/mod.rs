@@ -143,7 +143,7 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Fit a morphable model (the shipped face model by default) to a synthetic target
+    /// Fit a morphable model (the shipped ICT-FaceKit model by default) to a synthetic target
     /// (default) or to a photo with 2D landmarks; writes the fitted mesh (fit.obj, fit.mtl,
     /// albedo.png), landmarks.txt, detected_landmarks.txt, fit.png, overlay.png, compare.png,
     /// params.json, loss_curve.svg and report.json.
@@ -156,7 +156,8 @@ pub enum Command {
         /// MediaPipe face-mesh points, 68 iBUG points, or one per model landmark / vertex).
         #[arg(long, requires = "target")]
         landmarks: Option<PathBuf>,
-        /// Model folder (models/README.md layout); default: the shipped face model.
+        /// Model: `ict` (default; the ICT-FaceKit model, models/data/ict), `mediapipe` (the
+        /// small, fast MediaPipe-mesh model) or a model folder (models/README.md layout).
         #[arg(long)]
         model: Option<PathBuf>,
         /// Which face of the photo, counted from the largest (0); must be 0 with --landmarks.

@@ -1101,6 +1101,7 @@ pub fn build_face_model() -> Result<Morphable<f64>> {
                 "eye_left" | "eye_right" => Some(EYE_ALBEDO),
                 _ => None,
             },
+            photometric: true,
         })
         .collect();
     let parts = MorphableParts {

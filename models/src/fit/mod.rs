@@ -33,6 +33,7 @@
 //! step instead of being parked and woken for each (call [`fit`] from inside the pool, as
 //! `tapestry fit-face` does, so that the calling thread is a worker too).
 
+mod align;
 mod export;
 mod landmarks;
 mod render;
@@ -47,6 +48,7 @@ use ndarray::{Array2, Array3, ArrayD, IxDyn};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+pub use align::{umeyama, Similarity};
 pub use export::{face_obj, FaceObj};
 pub use landmarks::{
     correspondence, read_landmarks, Correspondence, LandmarkFileError, MEDIAPIPE_TO_IBUG68,
@@ -417,6 +419,18 @@ pub fn shape_error_scale_aligned_mm(a: &Array2<f64>, b: &Array2<f64>) -> f64 {
     shape_error_mm(&(a * s), b)
 }
 
+/// [`shape_error_mm`] after the rigid transform that best aligns `a` with `b` ([`umeyama`]
+/// without scale): the shape error that no head pose explains (the issue's "mean vertex error
+/// after rigid alignment").
+pub fn shape_error_rigid_aligned_mm(a: &Array2<f64>, b: &Array2<f64>) -> f64 {
+    let pts =
+        |m: &Array2<f64>| -> Vec<[f64; 3]> { m.outer_iter().map(|r| [r[0], r[1], r[2]]).collect() };
+    let (pa, pb) = (pts(a), pts(b));
+    let t = umeyama(&pa, &pb, false);
+    let moved = Array2::from_shape_fn(a.raw_dim(), |(i, c)| t.apply(pa[i])[c]);
+    shape_error_mm(&moved, b)
+}
+
 /// Closed-form pose initialisation: the mean face, unrotated, translated so that its
 /// projected landmarks have the target's centroid and spread.
 pub fn initial_pose(
@@ -523,7 +537,7 @@ impl Problem<'_> {
         }
         let mut photo_term = None;
         if photo {
-            let img = self.renderer.image(self.renderer.posed(&v), &v)?;
+            let img = self.renderer.photo_image(self.renderer.posed(&v), &v)?;
             let ph = tape.apply(
                 PhotoLossOp::new(self.target_img.clone(), w.charbonnier_eps),
                 &[img],
@@ -562,10 +576,11 @@ impl Problem<'_> {
 }
 
 /// The photometric term as one fused op: `sum_p m_p rho(I_p - T_p) / (3 sum_p m_p)` over the
-/// RGB channels of an image `[H, W, 4]`, with `m` its alpha channel held constant (no gradient
-/// flows into alpha) and `rho` the Charbonnier penalty. Zero when nothing is covered. Fusing
-/// it avoids eight image-sized intermediates per step; the sum runs in a fixed order. Any
-/// `[N, 1, 4]` list of weighted samples works the same way (the texture stage).
+/// RGB channels of an image `[H, W, C]` (`C >= 4`), with `m` the product of its channels after
+/// RGB (alpha, or the photometric weight times alpha: [`FaceRenderer::photo_image`]) held
+/// constant (no gradient flows into them) and `rho` the Charbonnier penalty. Zero when nothing
+/// is covered. Fusing it avoids eight image-sized intermediates per step; the sum runs in a
+/// fixed order.
 struct PhotoLossOp {
     target: std::sync::Arc<Tensor<f64>>,
     eps: f64,
@@ -591,17 +606,17 @@ impl autodiff::Op<f64> for PhotoLossOp {
         let img = inputs[0].as_standard_layout();
         let t = self.target.as_standard_layout();
         let s = img.shape();
-        if s.len() != 3 || s[2] != 4 || t.shape() != [s[0], s[1], 3] {
+        if s.len() != 3 || s[2] < 4 || t.shape() != [s[0], s[1], 3] {
             return Err(AutodiffError::shape(
                 "face_photo_loss",
                 &[s, t.shape()],
-                "expected an image [H, W, 4] and a target [H, W, 3]",
+                "expected an image [H, W, C >= 4] and a target [H, W, 3]",
             ));
         }
         let (im, ts) = (img.as_slice().expect("std"), t.as_slice().expect("std"));
         let (mut sum, mut msum) = (0.0, 0.0);
-        for (px, tp) in im.chunks_exact(4).zip(ts.chunks_exact(3)) {
-            let m = px[3];
+        for (px, tp) in im.chunks_exact(s[2]).zip(ts.chunks_exact(3)) {
+            let m: f64 = px[3..].iter().product();
             if m > 0.0 {
                 msum += m;
                 for (p, q) in px[..3].iter().zip(tp) {
@@ -624,13 +639,14 @@ impl autodiff::Op<f64> for PhotoLossOp {
         let t = self.target.as_standard_layout();
         let g = ctx.grad_outputs[0].iter().next().copied().unwrap_or(0.0) * self.scale;
         let (im, ts) = (img.as_slice().expect("std"), t.as_slice().expect("std"));
+        let c = img.shape()[2];
         let mut out = vec![0.0; im.len()];
         for ((px, tp), o) in im
-            .chunks_exact(4)
+            .chunks_exact(c)
             .zip(ts.chunks_exact(3))
-            .zip(out.chunks_exact_mut(4))
+            .zip(out.chunks_exact_mut(c))
         {
-            let m = px[3];
+            let m: f64 = px[3..].iter().product();
             if m > 0.0 {
                 for ((ok, p), q) in o.iter_mut().zip(&px[..3]).zip(tp) {
                     let r = p - q;
@@ -853,13 +869,13 @@ fn step(
 }
 
 /// Scales the SH coefficients per channel so that the mean rendered colour over the covered
-/// pixels matches the target's there.
+/// pixels of the photometric mask matches the target's there.
 fn balance_light(
     renderer: &FaceRenderer<'_>,
     params: &mut FaceParams,
     target: &Array3<f64>,
 ) -> Result<(), FitError> {
-    let (img, _) = renderer.render(params)?;
+    let img = renderer.render_photo(params)?;
     let (mut sr, mut st) = ([0.0; 3], [0.0; 3]);
     for ((r, c, k), &v) in img.indexed_iter() {
         if k < 3 && img[[r, c, 3]] > 0.5 {
@@ -884,35 +900,48 @@ mod tests {
     use autodiff::gradcheck::{gradcheck, GradcheckOptions};
     use autodiff::rng::Rng;
 
+    /// The fused photometric term against composed ops, with alpha alone (`[H, W, 4]`) and
+    /// with a photometric weight and alpha (`[H, W, 5]`), and its gradient (f64 finite
+    /// differences).
     #[test]
     fn photo_loss_matches_composed_ops_and_gradcheck() {
-        let mut rng = Rng::new(4);
-        let rgb: Tensor<f64> = rng.uniform_tensor(&[5, 6, 3], 0.0, 1.0);
-        let mut alpha: Tensor<f64> = rng.uniform_tensor(&[5, 6, 1], 0.0, 1.0);
-        alpha[[0, 0, 0]] = 0.0;
-        let target = std::sync::Arc::new(rng.uniform_tensor::<f64>(&[5, 6, 3], 0.0, 1.0));
-        let eps = 0.05;
-        let op = |t: &std::sync::Arc<Tensor<f64>>| PhotoLossOp::new(t.clone(), eps);
-        let tape = Tape::new();
-        let x = tape.leaf(rgb.clone());
-        let a = tape.constant(alpha.clone());
-        let fused = tape.apply(op(&target), &[tape.concat(&[x, a], 2)]);
-        let r = x - tape.constant((*target).clone());
-        let rho = (r.square() + eps * eps).sqrt() - eps;
-        let msum: f64 = alpha.iter().sum();
-        let composed = (rho * a).sum() * (1.0 / (3.0 * msum));
-        let (f, c) = (fused.item().unwrap(), composed.item().unwrap());
-        assert!((f - c).abs() < 1e-12 * c.abs().max(1.0), "{f} vs {c}");
-        let rep = gradcheck(
-            |t: &Tape<f64>, v| {
-                let a = t.constant(alpha.clone());
-                t.apply(op(&target), &[t.concat(&[v[0], a], 2)])
-            },
-            &[rgb],
-            &GradcheckOptions::default(),
-        )
-        .unwrap();
-        assert!(rep.passed(), "{rep}");
+        for extra in [1, 2] {
+            let mut rng = Rng::new(4);
+            let rgb: Tensor<f64> = rng.uniform_tensor(&[5, 6, 3], 0.0, 1.0);
+            let mut weights: Tensor<f64> = rng.uniform_tensor(&[5, 6, extra], 0.0, 1.0);
+            weights[[0, 0, 0]] = 0.0;
+            if extra == 2 {
+                weights[[1, 2, 0]] = 0.0;
+            }
+            let target = std::sync::Arc::new(rng.uniform_tensor::<f64>(&[5, 6, 3], 0.0, 1.0));
+            let eps = 0.05;
+            let op = |t: &std::sync::Arc<Tensor<f64>>| PhotoLossOp::new(t.clone(), eps);
+            let m = weights.map_axis(ndarray::Axis(2), |w| w.iter().product::<f64>());
+            let m = m.insert_axis(ndarray::Axis(2));
+            let tape = Tape::new();
+            let x = tape.leaf(rgb.clone());
+            let a = tape.constant(weights.clone());
+            let fused = tape.apply(op(&target), &[tape.concat(&[x, a], 2)]);
+            let r = x - tape.constant((*target).clone());
+            let rho = (r.square() + eps * eps).sqrt() - eps;
+            let msum: f64 = m.iter().sum();
+            let composed = (rho * tape.constant(m.clone())).sum() * (1.0 / (3.0 * msum));
+            let (f, c) = (fused.item().unwrap(), composed.item().unwrap());
+            assert!(
+                (f - c).abs() < 1e-12 * c.abs().max(1.0),
+                "{extra}: {f} vs {c}"
+            );
+            let rep = gradcheck(
+                |t: &Tape<f64>, v| {
+                    let a = t.constant(weights.clone());
+                    t.apply(op(&target), &[t.concat(&[v[0], a], 2)])
+                },
+                &[rgb],
+                &GradcheckOptions::default(),
+            )
+            .unwrap();
+            assert!(rep.passed(), "{extra}: {rep}");
+        }
     }
 
     #[test]

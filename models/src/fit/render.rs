@@ -217,7 +217,7 @@ impl<'m> FaceRenderer<'m> {
         world: Var<'t, f64>,
         v: &ParamVars<'t>,
     ) -> Result<Var<'t, f64>, FitError> {
-        self.shaded(world, v, None)
+        self.shaded(world, v, None, false)
     }
 
     /// [`FaceRenderer::image`] with the albedo of the faces marked in `textured` (one flag
@@ -238,7 +238,22 @@ impl<'m> FaceRenderer<'m> {
                 self.render_faces.len()
             )));
         }
-        self.shaded(world, v, Some((texels, textured)))
+        self.shaded(world, v, Some((texels, textured)), false)
+    }
+
+    /// The image the photometric term compares: as [`FaceRenderer::image`] when every region
+    /// of the model is photometric, else `[H, W, 5]`: RGB, the photometric weight (1 where a
+    /// photometric triangle is visible, 0 where another one is: [`Region::photometric`],
+    /// [`RegionSplit::photo_weight`]) and coverage. A pixel's weight in the term is the
+    /// product of the channels after RGB.
+    ///
+    /// [`Region::photometric`]: crate::morphable::Region::photometric
+    pub fn photo_image<'t>(
+        &self,
+        world: Var<'t, f64>,
+        v: &ParamVars<'t>,
+    ) -> Result<Var<'t, f64>, FitError> {
+        self.shaded(world, v, None, true)
     }
 
     fn shaded<'t>(
@@ -246,8 +261,13 @@ impl<'m> FaceRenderer<'m> {
         world: Var<'t, f64>,
         v: &ParamVars<'t>,
         texture: Option<(Var<'t, f64>, &Arc<Vec<bool>>)>,
+        photo: bool,
     ) -> Result<Var<'t, f64>, FitError> {
         let tape = world.tape();
+        let weight = match self.split.photo_weight() {
+            Some(w) if photo => Some(tape.var_shared(w.clone(), false)),
+            _ => None,
+        };
         let normals = self.split.gather(vertex_normals(world, &self.model_faces));
         let albedo = self
             .split
@@ -277,7 +297,11 @@ impl<'m> FaceRenderer<'m> {
                 });
                 a = t.where_(mask, a);
             }
-            Ok(sh_shade(n, a, v.sh))
+            let rgb = sh_shade(n, a, v.sh);
+            Ok(match weight {
+                Some(w) => tape.concat(&[rgb, interpolate(w, r)?], 1),
+                None => rgb,
+            })
         })?)
     }
 
@@ -344,6 +368,29 @@ impl<'m> FaceRenderer<'m> {
         let img = self.image(world, &v)?.value()?;
         let px = self.project_rows(world, v.focal)?.value()?;
         Ok((to3(&img), to2(&px)))
+    }
+
+    /// Plain render of `p` as the photometric term sees it: `[H, W, 4]`, RGB and alpha =
+    /// coverage times the photometric weight ([`FaceRenderer::photo_image`]); with it
+    /// [`super::photometric_rmse`] is the RMSE inside the photometric mask.
+    pub fn render_photo(&self, p: &FaceParams) -> Result<Array3<f64>, FitError> {
+        let tape = Tape::new();
+        let v = self.vars(&tape, p, Active::NONE);
+        let img = self.photo_image(self.posed(&v), &v)?.value()?;
+        let img = to3(&img);
+        if img.shape()[2] == 4 {
+            return Ok(img);
+        }
+        let mut out = img.slice(ndarray::s![.., .., 0..4]).to_owned();
+        for ((o, &w), &a) in out
+            .slice_mut(ndarray::s![.., .., 3])
+            .iter_mut()
+            .zip(img.slice(ndarray::s![.., .., 3]))
+            .zip(img.slice(ndarray::s![.., .., 4]))
+        {
+            *o = w * a;
+        }
+        Ok(out)
     }
 
     /// Plain pixel positions `[N, 2]` of landmark `points` of the face posed by `p`.

@@ -107,49 +107,85 @@ fn float16_files_round_trip() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// ICT's "narrow face area" (vertices 0..6705): the part of the face a frontal photo shows
-/// (no ears, neck or the sides of the head).
-const NARROW_FACE: usize = 6706;
+/// ICT's "Full face area" (vertices 0..9408): the "face area".
+const FACE_AREA: usize = 9409;
 
-/// Synthetic end to end: the ICT model rendered with a random identity, expression, albedo,
-/// SH light and pose (`fit::synthesize`, 64 x 64, hard raster, noise 0.01) and fitted back
-/// with the default schedule.
-#[test]
-fn synthetic_ict_fit_recovers_the_face() {
+/// Errors of a fit of the ICT model against its synthetic truth.
+struct SynthFit {
+    landmarks_px: f64,
+    /// Mean vertex error after rigid alignment over the full face area, mm.
+    face_area_mm: f64,
+    /// The same over the narrow face, mm.
+    narrow_mm: f64,
+    /// The mean shape's error over the full face area (rigidly aligned), mm.
+    mean_shape_mm: f64,
+    /// Photometric RMSE inside the photometric mask (the narrow face's visible pixels).
+    rmse: f64,
+}
+
+/// Synthesises an ICT target (`fit::synthesize`: random identity, expression, albedo, SH
+/// light and pose, hard raster 2 x 2 supersampled, noise 0.01) and fits it back with the
+/// default schedule.
+fn synthetic_ict_fit(size: usize, iters: usize, seed: u64) -> SynthFit {
     use models::fit::{self, FitOptions, SynthOptions};
     let m: Morphable<f64> = Morphable::load(ict_dir()).unwrap();
-    let size = 64;
-    let s = fit::synthesize(&m, &SynthOptions::new(size, size, 3)).unwrap();
-    let o = FitOptions::new(size, size, 200);
+    let s = fit::synthesize(&m, &SynthOptions::new(size, size, seed)).unwrap();
+    let o = FitOptions::new(size, size, iters);
     let t = std::time::Instant::now();
     let r = fit::fit(&m, &s.target, None, &o, &mut |_| {}).unwrap();
     let secs = t.elapsed().as_secs_f64();
     let renderer = fit::FaceRenderer::new(&m, o.render.clone()).unwrap();
-    let (img, _) = renderer.render(&r.params).unwrap();
     let lm = renderer.landmarks_px(&r.params, &s.target.points).unwrap();
-    let narrow = |a: ndarray::Array2<f64>| a.slice(ndarray::s![..NARROW_FACE, ..]).to_owned();
-    let truth = narrow(s.truth.shape(&m).unwrap());
-    let shape = narrow(r.params.shape(&m).unwrap());
-    let mean = narrow(m.mean_shape());
-    let lm_px = fit::landmark_error_px(&lm, &s.target.landmarks);
-    let err = fit::shape_error_mm(&shape, &truth);
-    let aligned = fit::shape_error_scale_aligned_mm(&shape, &truth);
-    let mean_err = fit::shape_error_mm(&mean, &truth);
-    let rmse = fit::photometric_rmse(&img, &s.target.image);
+    let rows = |a: &ndarray::Array2<f64>, n: usize| a.slice(ndarray::s![..n, ..]).to_owned();
+    let (truth, shape) = (s.truth.shape(&m).unwrap(), r.params.shape(&m).unwrap());
+    let err = |a: &ndarray::Array2<f64>, n| {
+        fit::shape_error_rigid_aligned_mm(&rows(a, n), &rows(&truth, n))
+    };
+    let f = SynthFit {
+        landmarks_px: fit::landmark_error_px(&lm, &s.target.landmarks),
+        face_area_mm: err(&shape, FACE_AREA),
+        narrow_mm: err(&shape, models::ict::NARROW_FACE_VERTICES),
+        mean_shape_mm: err(&m.mean_shape(), FACE_AREA),
+        rmse: fit::photometric_rmse(&renderer.render_photo(&r.params).unwrap(), &s.target.image),
+    };
     eprintln!(
-        "ICT fit ({secs:.1} s): landmarks {lm_px:.3} px, narrow-face shape {err:.3} mm (scale-aligned {aligned:.3}, mean shape {mean_err:.3}), rmse {rmse:.4}"
+        "truth RMSE in the mask {:.4}; photo term first/last of stage 2 {:?}",
+        fit::photometric_rmse(&renderer.render_photo(&s.truth).unwrap(), &s.target.image),
+        r.history
+            .iter()
+            .filter(|h| h.stage == 2)
+            .map(|h| h.photo_term)
+            .step_by(25)
+            .collect::<Vec<_>>()
     );
-    // Measured (2026-11-28, seed 3): landmarks 0.16 px, narrow-face shape 2.13 mm against
-    // 7.65 mm for the mean shape (scale-aligned 2.14), RMSE 0.067 (at 64 px the silhouette,
-    // eye and mouth edge pixels weigh much; `tapestry fit-face --model models/data/ict
-    // --iters 400` at 256 px: RMSE 0.028). 150 iterations: 2.59 mm, RMSE 0.078. The issue's
-    // 1.5 mm / 0.03 aims are not reached by this schedule; these bounds guard what it
-    // reaches.
-    assert!(lm_px < 0.5, "landmark error {lm_px} px");
+    eprintln!(
+        "ICT fit {size} px, {iters} iterations, seed {seed} ({secs:.1} s): landmarks {:.3} px, rigidly aligned vertex error {:.3} mm over the face area ({:.3} narrow face; mean shape {:.3}), RMSE in the mask {:.4}",
+        f.landmarks_px, f.face_area_mm, f.narrow_mm, f.mean_shape_mm, f.rmse
+    );
+    f
+}
+
+/// Synthetic end to end (the test, at CI size): 64 x 64, 200 iterations.
+#[test]
+fn synthetic_ict_fit_recovers_the_face() {
+    let f = synthetic_ict_fit(64, 200, 3);
+    assert!(f.landmarks_px < 0.5, "landmark error {} px", f.landmarks_px);
     assert!(
-        err < 0.35 * mean_err,
-        "shape {err} mm, mean shape {mean_err} mm"
+        f.face_area_mm < 0.35 * f.mean_shape_mm,
+        "shape {} mm, mean shape {} mm",
+        f.face_area_mm,
+        f.mean_shape_mm
     );
-    assert!(aligned < 2.5, "scale-aligned shape error {aligned} mm");
-    assert!(rmse < 0.08, "photometric RMSE {rmse}");
+    assert!(f.rmse < 0.03, "photometric RMSE in the mask {}", f.rmse);
+}
+
+#[test]
+#[ignore = "tmp study"]
+fn tmp_study() {
+    let v: Vec<usize> = std::env::var("ICT_STUDY")
+        .unwrap()
+        .split(',')
+        .map(|x| x.parse().unwrap())
+        .collect();
+    synthetic_ict_fit(v[0], v[1], v[2] as u64);
 }

@@ -69,6 +69,7 @@ fn tiny() -> MorphableParts<f64> {
             Region {
                 name: "bottom".into(),
                 albedo: Some([0.1, 0.0, 0.0]),
+                photometric: false,
             },
         ],
         face_regions: vec![0, 0, 0, 0, 1, 1],
