@@ -97,6 +97,8 @@ def fit_face(image=None, landmarks=None, *, iters=200, method="hard", size=256, 
     """Fits the morphable face model (``tapestry fit-face``, nothing written): to ``image``
     (``[H, W, C]`` float64 in [0, 1], C of 1 to 4) with ``landmarks`` (``[N, 2]`` pixels,
     or detected when None), or to a synthetic target (seed ``seed``) when ``image`` is None.
+    ``model``: ``"ict"`` (None: the ICT-FaceKit model), ``"mediapipe"`` (small, fast) or a
+    model folder.
 
     Returns a dict: ``params`` (params.json as a dict), ``report`` (report.json),
     ``vertices`` ``[V, 3]`` (model space, mm), ``faces`` ``[F, 3]``, ``albedo`` ``[V, 3]``,

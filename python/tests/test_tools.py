@@ -13,7 +13,10 @@ def test_fit_face_synthetic():
     assert v.ndim == 2 and v.shape[1] == 3 and a.shape == v.shape
     assert f.shape[1] == 3 and f.max() < len(v)
     assert img.shape == (64, 64, 4)
-    assert r["report"]["iterations"] == 4 and r["report"]["target"] == "synthetic"
+    rep = r["report"]
+    # The default model is ICT-FaceKit's; exact landmarks get 3000 landmark steps.
+    assert len(v) > 10000 and rep["target"] == "synthetic"
+    assert rep["full_iterations"] == 2 and rep["iterations"] == rep["landmark_iterations"] + 2
     assert np.isfinite(r["report"]["landmark_error_px"])
     assert len(r["params"]["z_id"]) > 0 and len(r["params"]["sh"]) == 9
 

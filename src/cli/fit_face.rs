@@ -36,7 +36,8 @@ pub struct Args {
     pub face: usize,
     /// Output folder.
     pub out: PathBuf,
-    /// Iterations in all (half landmarks only, half all terms).
+    /// Iterations in all (half landmarks only, half all terms; a synthetic target's exact
+    /// landmarks get at least [`fit::EXACT_LANDMARK_ITERS`] landmark steps).
     pub iters: usize,
     /// Seed of the synthetic target.
     pub seed: u64,
@@ -467,13 +468,17 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
     let (h, w, _) = target.image.dim();
     let (hi, wi, _) = prep.input.dim();
     let mut opts = FitOptions::new(w, h, args.iters);
+    if prep.truth.is_some() {
+        // A synthetic target's landmarks are exact.
+        opts = opts.with_exact_landmarks();
+    }
     opts.render.method = method;
     // The photo's own aspect, so that fit pixels map back to input pixels by `scale`.
     opts.render.aspect = Some(wi as f64 / hi as f64);
     let progress = Progress {
         on: std::io::stderr().is_terminal(),
         landmark_iters: opts.landmark_iters,
-        total: args.iters,
+        total: opts.landmark_iters + opts.full_iters,
     };
     let fit_start = Instant::now();
     // On a worker of rayon's global pool (`scope` runs its body on one), so that the fit's
@@ -596,7 +601,7 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
     let mut report = json!({
         "method": method.name(),
         "model": model.name(),
-        "iterations": args.iters,
+        "iterations": opts.landmark_iters + opts.full_iters,
         "landmark_iterations": opts.landmark_iters,
         "full_iterations": opts.full_iters,
         "landmark_error_px": lm_err,
@@ -657,6 +662,8 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
         report["shape_error_mm"] = json!(fit::shape_error_mm(&fit_shape, &true_shape));
         report["shape_error_scale_aligned_mm"] =
             json!(fit::shape_error_scale_aligned_mm(&fit_shape, &true_shape));
+        report["shape_error_rigid_aligned_mm"] =
+            json!(fit::shape_error_rigid_aligned_mm(&fit_shape, &true_shape));
         report["mean_shape_error_mm"] = json!(fit::shape_error_mm(&mean, &true_shape));
     } else {
         report["image_scale"] = json!(prep.scale);
@@ -732,13 +739,16 @@ fn write_fit(args: &Args, fit: FaceFit) -> Result<ExitCode, CliError> {
     }
     if let Some(s) = report.get("shape_error_mm").and_then(|v| v.as_f64()) {
         println!(
-            "shape error: {s:.3} mm (mean shape: {:.3} mm)",
+            "shape error: {s:.3} mm, {:.3} mm after rigid alignment (mean shape: {:.3} mm)",
+            report["shape_error_rigid_aligned_mm"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
             report["mean_shape_error_mm"].as_f64().unwrap_or(f64::NAN)
         );
     }
     println!(
         "time: {fit_seconds:.2} s fit ({} iterations: {:.1} ms/iter landmarks, {:.1} ms/iter all terms), {total:.2} s in all",
-        args.iters,
+        report["iterations"],
         1e3 * spi1,
         1e3 * spi2
     );

@@ -166,7 +166,8 @@ pub enum Command {
         /// Output folder.
         #[arg(long, default_value = "fit-face-out")]
         out: PathBuf,
-        /// Iterations in all: the first half fits landmarks only, the second all terms.
+        /// Iterations in all: the first half fits landmarks only, the second all terms (a
+        /// synthetic target's exact landmarks: at least 3000 landmark steps, weak shape priors).
         #[arg(long, default_value_t = 200)]
         iters: usize,
         /// Seed of the synthetic target.

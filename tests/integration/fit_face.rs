@@ -290,13 +290,16 @@ fn cli_fit_face_writes_its_files() {
             "report.json lacks {key}: {report}"
         );
     }
-    assert_eq!(report["iterations"], 8);
+    // The default model is ICT-FaceKit's; the synthetic target's exact landmarks get
+    // `EXACT_LANDMARK_ITERS` landmark steps, then the 4 of stage 2.
+    assert_eq!(report["iterations"], fit::EXACT_LANDMARK_ITERS + 4);
     assert_eq!(report["method"], "hard");
     assert!(report["landmark_error_px"].as_f64().unwrap().is_finite());
     let params: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d.join("params.json")).unwrap()).unwrap();
     assert_eq!(params["sh"].as_array().unwrap().len(), 9);
-    assert_eq!(params["z_id"].as_array().unwrap().len(), model().n_id());
+    let ict: Morphable<f64> = models::ict::load_ict().unwrap();
+    assert_eq!(params["z_id"].as_array().unwrap().len(), ict.n_id());
     let svg = std::fs::read_to_string(d.join("loss_curve.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("<polyline"));
 }

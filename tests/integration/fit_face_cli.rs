@@ -77,6 +77,8 @@ fn a_resized_photo_gives_every_output_in_its_own_pixels() {
     let (img, lm, truth) = photo(&d, 150, 120, 4);
     let out = d.join("out");
     let o = fit_face(&[
+        "--model".as_ref(),
+        "mediapipe".as_ref(),
         "--target".as_ref(),
         img.as_os_str(),
         "--landmarks".as_ref(),
@@ -199,6 +201,8 @@ fn gray_jpeg_photos_are_fitted() {
     std::fs::write(&lm, lines(&s.target.landmarks)).unwrap();
     let out = d.join("out");
     let o = fit_face(&[
+        "--model".as_ref(),
+        "mediapipe".as_ref(),
         "--target".as_ref(),
         img.as_os_str(),
         "--landmarks".as_ref(),
@@ -431,6 +435,8 @@ fn a_photo_without_landmarks_is_detected_and_fitted() {
     let (img, _, truth) = photo(&d, 256, 256, 3);
     let out = d.join("out");
     ok(&fit_face(&[
+        "--model".as_ref(),
+        "mediapipe".as_ref(),
         "--target".as_ref(),
         img.as_os_str(),
         "--iters".as_ref(),

@@ -290,8 +290,7 @@ fn renders_of_the_shipped_face_model_are_found() {
 /// projections of the model's MediaPipe correspondence points.
 #[test]
 fn renders_of_the_ict_model_are_found_at_its_correspondence_points() {
-    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/data/ict");
-    let model: Morphable<f64> = Morphable::load(dir).unwrap();
+    let model: Morphable<f64> = models::ict::load_ict().unwrap();
     let mut means = Vec::new();
     for seed in 0..4 {
         let mut o = SynthOptions::new(256, 256, 100 + seed);
