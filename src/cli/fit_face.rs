@@ -552,19 +552,26 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
     let full_img = match &texture {
         Some((t, _)) if t.image.dim().0 == hi && t.image.dim().1 == wi => t.image.clone(),
         Some((t, _)) => {
-            let r = FaceRenderer::new(&model, full).map_err(err)?;
+            let r = FaceRenderer::new(&model, full.clone()).map_err(err)?;
             let texels = t.texels.clone().into_dyn();
             fit::render_textured(&r, &result.params, &texels, &t.textured).map_err(err)?
         }
         None if (wi, hi) == (w, h) && method == Method::Hard => img.clone(),
         None => {
-            FaceRenderer::new(&model, full)
+            FaceRenderer::new(&model, full.clone())
                 .map_err(err)?
                 .render(&result.params)
                 .map_err(err)?
                 .0
         }
     };
+    // compare.png shows the fit inside the photometric mask only: the pixels it was asked to
+    // match (ICT: the narrow face, without eyes and mouth socket).
+    let photo_mask = FaceRenderer::new(&model, full.clone())
+        .map_err(err)?
+        .render_photo(&result.params)
+        .map_err(err)?
+        .slice_move(s![.., .., 3]);
     let pjson = params_json(&model, &result.params, method, [w, h], [wi, hi]);
     let mut outs = Outputs {
         pngs: vec![
@@ -573,7 +580,7 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
                 "overlay.png",
                 overlay(&prep.input, &full_img, &prep.detected, &fitted_in),
             ),
-            ("compare.png", compare(&prep.input, &full_img)),
+            ("compare.png", compare(&prep.input, &full_img, &photo_mask)),
         ],
         texts: vec![
             ("landmarks.txt", points_text(&fitted_in)),
@@ -827,14 +834,14 @@ fn params_json(
     })
 }
 
-/// Input | fit (the render over the input where it covers it) | absolute difference, side by
-/// side, each `[H, W, 3]`.
-fn compare(input: &Array3<f64>, render: &Array3<f64>) -> Array3<f64> {
+/// Input | fit (the render over the input where `mask` `[H, W]` covers it) | absolute
+/// difference, side by side, each `[H, W, 3]`.
+fn compare(input: &Array3<f64>, render: &Array3<f64>, mask: &Array2<f64>) -> Array3<f64> {
     let (h, w, _) = input.dim();
     let mut o = Array3::<f64>::zeros((h, 3 * w, 3));
     for r in 0..h {
         for c in 0..w {
-            let a = render[[r, c, 3]];
+            let a = mask[[r, c]];
             for k in 0..3 {
                 let x = input[[r, c, k]];
                 let f = (1.0 - a) * x + a * render[[r, c, k]];

@@ -18,9 +18,10 @@
 //!      + (w_prior sum_t |A_t - A0_t|^2 + w_smooth sum_{t~t'} |A_t - A_t'|^2) / n_chart
 //! ```
 //!
-//! over the pixels `p` of textured faces ([`textured_faces`]: the skin; the eyes and the mouth
-//! interior keep the model's albedo and do not enter the data term, so they cannot bias the
-//! skin), with `w_p = max(0, n_p . v_p)` (`v_p` the unit vector to the camera): grazing pixels,
+//! over the pixels `p` of textured, photometric faces ([`textured_faces`]: the skin; the eyes
+//! and the mouth interior keep the model's albedo and do not enter the data term, so they
+//! cannot bias the skin; regions that are not photometric, such as ICT's `face_outer` with the
+//! hair line, ears and neck, are textured but see no pixel: they keep the baked prior), with `w_p = max(0, n_p . v_p)` (`v_p` the unit vector to the camera): grazing pixels,
 //! whose texels are stretched over many texels and whose colour mixes with the background,
 //! count little, and pixels that face away count nothing. Occlusion is the rasterizer's: a
 //! texel hidden behind the nose gets no pixel. `A0` is the model fit's per-vertex albedo baked
@@ -227,8 +228,9 @@ pub struct TextureFit {
     pub textured: Arc<Vec<bool>>,
     /// The render with the texture `[H, W, 4]`.
     pub image: Array3<f64>,
-    /// Photometric RMSE over the covered pixels ([`photometric_rmse`]) of the model fit's
-    /// render (per-vertex albedo) and of the textured render.
+    /// Photometric RMSE inside the photometric mask ([`photometric_rmse`] of
+    /// [`FaceRenderer::render_photo`]: the visible pixels of photometric regions) of the model
+    /// fit's render (per-vertex albedo) and of the textured render.
     pub rmse_before: f64,
     /// See `rmse_before`.
     pub rmse_after: f64,
@@ -304,11 +306,21 @@ pub fn fit_texture(
     let prior = Arc::new(baked.texels.clone().into_dyn());
     let chart = Arc::new(baked.chart.iter().copied().collect::<Vec<bool>>());
 
-    // The data: covered pixels of textured faces, weighted by n . v.
+    // The data: covered pixels of textured, photometric faces, weighted by n . v.
+    let photometric: Vec<bool> = model
+        .face_regions()
+        .iter()
+        .map(|&r| {
+            model
+                .regions()
+                .get(r as usize)
+                .is_some_and(|r| r.photometric)
+        })
+        .collect();
     let s = renderer.surface_samples(params)?;
     let mut keep = Vec::new();
     for (i, &f) in s.face.iter().enumerate() {
-        if !textured[f as usize] {
+        if !(textured[f as usize] && photometric[f as usize]) {
             continue;
         }
         let (n, p) = (s.normal.row(i), s.position.row(i));
@@ -387,13 +399,20 @@ pub fn fit_texture(
         texels.mapv_inplace(|x| x.clamp(0.0, 1.0));
     }
 
-    let before = renderer.render(params)?.0;
+    // Both RMSEs inside the photometric mask: the model fit's render as the photometric term
+    // sees it, and the textured render (the same geometry, so the same coverage) with its
+    // alpha replaced by that mask.
+    let before = renderer.render_photo(params)?;
     let after = render_textured(&renderer, params, &texels, &textured)?;
+    let mut after_masked = after.clone();
+    after_masked
+        .slice_mut(ndarray::s![.., .., 3])
+        .assign(&before.slice(ndarray::s![.., .., 3]));
     let texels = to3(&texels);
     let seen = Array2::from_shape_vec((o.size, o.size), seen).expect("S x S");
     Ok(TextureFit {
         rmse_before: photometric_rmse(&before, image),
-        rmse_after: photometric_rmse(&after, image),
+        rmse_after: photometric_rmse(&after_masked, image),
         image: after,
         texels,
         prior: to3(&prior),
