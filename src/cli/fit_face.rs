@@ -292,16 +292,14 @@ struct Prepared {
 /// `mediapipe` (the small shipped model on the MediaPipe mesh, [`models::face`]) or a model
 /// folder.
 fn load_model(args: &Args) -> Result<Morphable<f64>, CliError> {
-    let dir = match args.model.as_deref() {
-        Some(p) if p == Path::new("mediapipe") => None,
-        Some(p) if p == Path::new("ict") => Some(models::ict::ict_dir()),
-        Some(p) => Some(p.to_path_buf()),
-        None => Some(models::ict::ict_dir()),
-    };
-    let model = match &dir {
+    let model = match args.model.as_deref() {
+        Some(p) if p == Path::new("mediapipe") => models::face::default_face(),
+        None => models::ict::load_ict().map_err(|e| CliError::Message(format!("ict: {e}")))?,
+        Some(p) if p == Path::new("ict") => {
+            models::ict::load_ict().map_err(|e| CliError::Message(format!("--model ict: {e}")))?
+        }
         Some(dir) => Morphable::<f64>::load(dir)
             .map_err(|e| CliError::Message(format!("--model {}: {e}", dir.display())))?,
-        None => models::face::default_face(),
     };
     if model.n_landmarks() == 0 {
         return Err(CliError::Message(format!(

@@ -143,22 +143,28 @@ fn fit_is_deterministic_across_thread_counts() {
 #[test]
 fn every_method_fits_a_few_steps_and_lowers_the_loss() {
     // Stage 2 only (landmarks and the photometric term, every parameter), 4 steps at 32 px:
-    // each method's render and gradient run, and the loss falls.
-    let m = model();
-    let s = fit::synthesize(&m, &SynthOptions::new(32, 32, 0)).unwrap();
-    for method in Method::ALL {
-        let mut o = FitOptions::new(32, 32, 4);
-        o.render.method = method;
-        (o.landmark_iters, o.full_iters) = (0, 4);
-        let r = fit::fit(&m, &s.target, None, &o, &mut |_| {}).unwrap();
-        let (first, last) = (&r.history[0], r.history.last().unwrap());
-        assert!(first.photo_term > 0.0, "{method}: no photometric term");
-        assert!(
-            last.loss < first.loss,
-            "{method}: loss {} -> {}",
-            first.loss,
-            last.loss
-        );
+    // each method's render and gradient run, and the loss falls; for both shipped models (ICT's
+    // photometric term carries the photometric-weight channel through every method).
+    for m in [model(), models::ict::load_ict().unwrap()] {
+        let s = fit::synthesize(&m, &SynthOptions::new(32, 32, 0)).unwrap();
+        for method in Method::ALL {
+            let mut o = FitOptions::new(32, 32, 4);
+            o.render.method = method;
+            (o.landmark_iters, o.full_iters) = (0, 4);
+            let r = fit::fit(&m, &s.target, None, &o, &mut |_| {}).unwrap();
+            let (first, last) = (&r.history[0], r.history.last().unwrap());
+            let name = m.name();
+            assert!(
+                first.photo_term > 0.0,
+                "{name} {method}: no photometric term"
+            );
+            assert!(
+                last.loss < first.loss,
+                "{name} {method}: loss {} -> {}",
+                first.loss,
+                last.loss
+            );
+        }
     }
 }
 

@@ -284,7 +284,11 @@ impl<'m> FaceRenderer<'m> {
         };
         let pos = self.split.gather(world);
         let clip = self.clip(pos, v.focal)?;
-        let s = self.method_settings();
+        let mut s = self.method_settings();
+        if weight.is_some() {
+            // The photometric weight's channel: 0 on the background.
+            s.view.background.push(0.0);
+        }
         let faces = self.render_faces.clone();
         Ok(render_fragments(clip, faces, &s, &mut |r| {
             let n = interpolate(normals, r)?;

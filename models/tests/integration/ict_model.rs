@@ -101,6 +101,22 @@ fn float16_files_round_trip() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// The compiled-in copy (`load_ict`, what `fit-face` and the Python wheel use) is the folder.
+#[test]
+fn the_compiled_in_model_is_the_folder() {
+    let a: Morphable<f64> = models::ict::load_ict().unwrap();
+    let b: Morphable<f64> = Morphable::load(ict_dir()).unwrap();
+    assert_eq!(a.name(), b.name());
+    assert_eq!(a.faces(), b.faces());
+    assert_eq!(a.face_regions(), b.face_regions());
+    assert_eq!(a.regions(), b.regions());
+    assert_eq!(a.mean_shape(), b.mean_shape());
+    assert_eq!(a.id_basis(), b.id_basis());
+    assert_eq!(a.exp_basis(), b.exp_basis());
+    assert_eq!(a.uvs(), b.uvs());
+    assert_eq!(a.landmark_points(), b.landmark_points());
+}
+
 /// ICT's "Full face area" (vertices 0..9408): the "face area".
 const FACE_AREA: usize = 9409;
 
