@@ -57,7 +57,7 @@ pub use render::{
     Active, FaceRenderer, ParamVars, RenderOptions, SurfaceSamples, FAR_MM, NEAR_MM,
     TEXTURE_SAMPLER,
 };
-pub use synth::{euler_to_axis_angle, synthesize, SynthOptions, Synthetic};
+pub use synth::{euler_to_axis_angle, random_texture, synthesize, SynthOptions, Synthetic};
 pub use texture::{
     bake_albedo, fit_texture, render_textured, texture_prior, textured_faces, BakedTexture,
     TextureFit, TextureOptions, UNTEXTURED_REGIONS,

@@ -1,11 +1,14 @@
 //! Synthetic fitting targets: a face with seeded random coefficients, pose and light, rendered
 //! (supersampled, hard rasterization) with pixel noise, and its exact 2D landmarks.
 
+use std::sync::Arc;
+
 use autodiff::rng::Rng;
 use ndarray::Array3;
 use render_ops::scene::Method;
 
 use super::render::{FaceRenderer, RenderOptions};
+use super::texture::{bake_albedo, render_textured, textured_faces};
 use super::{FaceParams, FitError, FitTarget, DEFAULT_DISTANCE_MM, SH_Y00};
 use crate::morphable::Morphable;
 
@@ -34,6 +37,10 @@ pub struct SynthOptions {
     pub exp_scale: f64,
     /// Scale of the albedo coefficients (cut at +-2 times this).
     pub albedo_scale: f64,
+    /// A random albedo texture instead of the per-vertex albedo on the textured faces
+    /// ([`super::textured_faces`]): its side in texels and the relative amplitude of its
+    /// detail ([`random_texture`]); `None`: per-vertex albedo only.
+    pub texture: Option<(usize, f64)>,
 }
 
 impl SynthOptions {
@@ -52,6 +59,7 @@ impl SynthOptions {
             id_scale: 1.0,
             exp_scale: 0.7,
             albedo_scale: 0.7,
+            texture: None,
         }
     }
 }
@@ -63,6 +71,8 @@ pub struct Synthetic {
     pub target: FitTarget,
     /// The true parameters.
     pub truth: FaceParams,
+    /// The true albedo texture `[S, S, 3]` ([`SynthOptions::texture`]).
+    pub texture: Option<Array3<f64>>,
 }
 
 /// Rotation matrix `Ry(yaw) Rx(pitch) Rz(roll)` (radians) as an axis-angle vector.
@@ -147,7 +157,16 @@ pub fn synthesize(model: &Morphable<f64>, o: &SynthOptions) -> Result<Synthetic,
     let mut ro = RenderOptions::new(o.width * ss, o.height * ss);
     ro.method = Method::Hard;
     let renderer = FaceRenderer::new(model, ro)?;
-    let (big, px) = renderer.render(&p)?;
+    let (mut big, px) = renderer.render(&p)?;
+    let texture = match o.texture {
+        Some((size, amplitude)) => {
+            let t = random_texture(model, &p, size, amplitude, &mut rng)?;
+            let textured = Arc::new(textured_faces(model));
+            big = render_textured(&renderer, &p, &t.clone().into_dyn(), &textured)?;
+            Some(t)
+        }
+        None => None,
+    };
     let inv = 1.0 / (ss * ss) as f64;
     let mut img = Array3::<f64>::zeros((o.height, o.width, 3));
     for r in 0..o.height {
@@ -180,5 +199,99 @@ pub fn synthesize(model: &Morphable<f64>, o: &SynthOptions) -> Result<Synthetic,
             points,
         },
         truth: p,
+        texture,
     })
+}
+
+/// A random albedo texture `[size, size, 3]`: the per-vertex albedo of `p` on the textured faces
+/// ([`textured_faces`]) baked into uv space ([`bake_albedo`]) times `1 + d(u, v)`, clamped to [0, 1], where the detail `d` is a sum of
+/// eight random plane waves (2 to 24 cycles across the uv square, random direction, phase and
+/// per-channel weight) scaled so that `|d| <= amplitude`: freckle- to cheek-sized variation that
+/// no per-vertex albedo on ICT's mesh represents exactly.
+pub fn random_texture(
+    model: &Morphable<f64>,
+    p: &FaceParams,
+    size: usize,
+    amplitude: f64,
+    rng: &mut Rng,
+) -> Result<Array3<f64>, FitError> {
+    let uvs = model.uvs().ok_or_else(|| {
+        FitError::Invalid(format!(
+            "model {} has no uvs: it cannot be textured",
+            model.name()
+        ))
+    })?;
+    if size < 2 || !(0.0..1.0).contains(&amplitude) {
+        return Err(FitError::Invalid(format!(
+            "random texture of side {size} and amplitude {amplitude}: need side >= 2 and amplitude in [0, 1)"
+        )));
+    }
+    // Only the textured faces: other parts (ICT's eyeballs) may share their uv space.
+    let skin: Vec<[u32; 3]> = model
+        .faces()
+        .iter()
+        .zip(textured_faces(model))
+        .filter_map(|(f, t)| t.then_some(*f))
+        .collect();
+    let baked = bake_albedo(uvs, &skin, &p.albedo(model)?, &[], size);
+    let waves: Vec<([f64; 2], f64, [f64; 3])> = (0..8)
+        .map(|_| {
+            let cycles = rng.uniform(2.0, 24.0);
+            let angle = rng.uniform(0.0, std::f64::consts::TAU);
+            let phase = rng.uniform(0.0, std::f64::consts::TAU);
+            let w = [
+                rng.uniform(0.5, 1.0),
+                rng.uniform(0.5, 1.0),
+                rng.uniform(0.5, 1.0),
+            ];
+            ([cycles * angle.cos(), cycles * angle.sin()], phase, w)
+        })
+        .collect();
+    let scale = amplitude / waves.len() as f64;
+    let n = size as f64;
+    Ok(Array3::from_shape_fn((size, size, 3), |(r, c, k)| {
+        let (u, v) = ((c as f64 + 0.5) / n, 1.0 - (r as f64 + 0.5) / n);
+        let d: f64 = waves
+            .iter()
+            .map(|(f, phase, w)| {
+                w[k] * (std::f64::consts::TAU * (f[0] * u + f[1] * v) + phase).sin()
+            })
+            .sum();
+        (baked.texels[[r, c, k]] * (1.0 + scale * d)).clamp(0.0, 1.0)
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Without detail the random texture is the baked albedo of the textured faces; with it,
+    /// every texel stays within the amplitude of that (before the clamp to [0, 1]); bad sizes
+    /// and amplitudes are errors.
+    #[test]
+    fn random_texture_is_the_baked_albedo_times_bounded_detail() {
+        let m = crate::face::default_face::<f64>();
+        let p = FaceParams::neutral(&m);
+        let skin: Vec<[u32; 3]> = m
+            .faces()
+            .iter()
+            .zip(textured_faces(&m))
+            .filter_map(|(f, t)| t.then_some(*f))
+            .collect();
+        let baked = bake_albedo(m.uvs().unwrap(), &skin, &p.albedo(&m).unwrap(), &[], 32);
+        let flat = random_texture(&m, &p, 32, 0.0, &mut Rng::new(1)).unwrap();
+        assert_eq!(flat, baked.texels);
+        let t = random_texture(&m, &p, 32, 0.3, &mut Rng::new(1)).unwrap();
+        assert_ne!(t, baked.texels);
+        for (x, b) in t.iter().zip(baked.texels.iter()) {
+            let (lo, hi) = ((b * 0.7).max(0.0), (b * 1.3).min(1.0));
+            assert!(
+                *x >= lo - 1e-12 && *x <= hi + 1e-12,
+                "{x} outside [{lo}, {hi}]"
+            );
+        }
+        for (size, amp) in [(1, 0.1), (32, -0.1), (32, 1.0), (32, f64::NAN)] {
+            assert!(random_texture(&m, &p, size, amp, &mut Rng::new(1)).is_err());
+        }
+    }
 }
