@@ -547,26 +547,20 @@ pub fn fit_face(args: &Args, given: Option<GivenTarget>) -> Result<FaceFit, CliE
     // stage ran).
     let mut full = RenderOptions::new(wi, hi);
     full.aspect = opts.render.aspect;
+    let full_renderer = FaceRenderer::new(&model, full).map_err(err)?;
     let full_img = match &texture {
         Some((t, _)) if t.image.dim().0 == hi && t.image.dim().1 == wi => t.image.clone(),
         Some((t, _)) => {
-            let r = FaceRenderer::new(&model, full.clone()).map_err(err)?;
             let texels = t.texels.clone().into_dyn();
-            fit::render_textured(&r, &result.params, &texels, &t.textured).map_err(err)?
+            fit::render_textured(&full_renderer, &result.params, &texels, &t.textured)
+                .map_err(err)?
         }
         None if (wi, hi) == (w, h) && method == Method::Hard => img.clone(),
-        None => {
-            FaceRenderer::new(&model, full.clone())
-                .map_err(err)?
-                .render(&result.params)
-                .map_err(err)?
-                .0
-        }
+        None => full_renderer.render(&result.params).map_err(err)?.0,
     };
     // compare.png shows the fit inside the photometric mask only: the pixels it was asked to
     // match (ICT: the narrow face, without eyes and mouth socket).
-    let photo_mask = FaceRenderer::new(&model, full.clone())
-        .map_err(err)?
+    let photo_mask = full_renderer
         .render_photo(&result.params)
         .map_err(err)?
         .slice_move(s![.., .., 3]);

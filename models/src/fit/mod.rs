@@ -15,7 +15,9 @@
 //!   + w_id sum z_id^2 + w_exp sum z_exp^2 + w_alb sum z_alb^2 + w_sh sum_{k>0} |sh_k|^2
 //! ```
 //!
-//! with `m` the rendered face region (the render's alpha, held constant in each step), `rho`
+//! with `m` the rendered face region (the render's alpha times the photometric weight, 1 on the
+//! regions that are photometric and 0 on the others, such as ICT's eyes and the face area
+//! outside its narrow face: [`FaceRenderer::photo_image`]; held constant in each step), `rho`
 //! the Charbonnier penalty, `x_l` the projected landmark points and `y_l` the target
 //! landmarks in pixels.
 //!
@@ -23,7 +25,9 @@
 //! and spread; stage 1 fits the pose from the landmarks alone (the first
 //! [`FitOptions::pose_only_fraction`] of its iterations), then pose, identity and expression;
 //! stage 2 fits every parameter with the photometric term added, after scaling the SH
-//! coefficients so that the mean rendered colour matches the target's. Each stage uses fresh
+//! coefficients so that the mean rendered colour matches the target's. Exact landmarks (a
+//! synthetic target's) call for weaker shape priors and a converged stage 1
+//! ([`FitOptions::with_exact_landmarks`]). Each stage uses fresh
 //! Adam optimisers (one per parameter group, each with its own step size) with a cosine step
 //! decay to 10 %. Parameters live outside the tape; every step builds a fresh tape.
 //!
