@@ -800,6 +800,13 @@ impl<T: Real> Morphable<T> {
     pub fn face_regions(&self) -> &[u16] {
         &self.face_regions
     }
+    /// One flag per triangle: whether its region is photometric ([`Region::photometric`]).
+    pub fn photometric_faces(&self) -> Vec<bool> {
+        self.face_regions
+            .iter()
+            .map(|&r| self.regions[r as usize].photometric)
+            .collect()
+    }
     /// Indices of the triangles in region `name` (empty if there is no such region).
     pub fn faces_in_region(&self, name: &str) -> Vec<usize> {
         match self.region_label(name) {
@@ -1076,17 +1083,17 @@ impl<T: Real> Morphable<T> {
         }
         // Photometric split: a render vertex used by both kinds of triangle gets a copy for
         // the non-photometric ones.
-        let photometric = |f: usize| self.regions[self.face_regions[f] as usize].photometric;
+        let photometric = self.photometric_faces();
         let n0 = vertex_map.len();
         let mut used = vec![[false; 2]; n0];
         for (f, tri) in faces.iter().enumerate() {
             for &ix in tri {
-                used[ix as usize][usize::from(photometric(f))] = true;
+                used[ix as usize][usize::from(photometric[f])] = true;
             }
         }
         let mut copy: BTreeMap<u32, u32> = BTreeMap::new();
         for (f, tri) in faces.iter_mut().enumerate() {
-            if photometric(f) {
+            if photometric[f] {
                 continue;
             }
             for ix in tri.iter_mut() {

@@ -292,19 +292,19 @@ struct Prepared {
 /// `mediapipe` (the small shipped model on the MediaPipe mesh, [`models::face`]) or a model
 /// folder.
 fn load_model(args: &Args) -> Result<Morphable<f64>, CliError> {
-    let model = match args.model.as_deref() {
-        Some(p) if p == Path::new("mediapipe") => models::face::default_face(),
-        None => models::ict::load_ict().map_err(|e| CliError::Message(format!("ict: {e}")))?,
-        Some(p) if p == Path::new("ict") => {
-            models::ict::load_ict().map_err(|e| CliError::Message(format!("--model ict: {e}")))?
-        }
-        Some(dir) => Morphable::<f64>::load(dir)
-            .map_err(|e| CliError::Message(format!("--model {}: {e}", dir.display())))?,
-    };
+    let name = args.model.as_deref().unwrap_or(Path::new("ict"));
+    let model = if name == Path::new("mediapipe") {
+        Ok(models::face::default_face())
+    } else if name == Path::new("ict") {
+        models::ict::load_ict()
+    } else {
+        Morphable::<f64>::load(name)
+    }
+    .map_err(|e| CliError::Message(format!("--model {}: {e}", name.display())))?;
     if model.n_landmarks() == 0 {
         return Err(CliError::Message(format!(
             "--model {}: the model has no landmarks",
-            args.model.as_deref().unwrap_or(Path::new("")).display()
+            name.display()
         )));
     }
     Ok(model)

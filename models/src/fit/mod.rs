@@ -63,8 +63,8 @@ pub use render::{
 };
 pub use synth::{euler_to_axis_angle, random_texture, synthesize, SynthOptions, Synthetic};
 pub use texture::{
-    bake_albedo, fit_texture, render_textured, texture_prior, textured_faces, BakedTexture,
-    TextureFit, TextureOptions, UNTEXTURED_REGIONS,
+    bake_albedo, bake_textured, fit_texture, render_textured, texture_prior, textured_faces,
+    BakedTexture, TextureFit, TextureOptions, UNTEXTURED_REGIONS,
 };
 
 use crate::morphable::{LandmarkPoint, Morphable, PointShape};

@@ -8,7 +8,7 @@ use ndarray::Array3;
 use render_ops::scene::Method;
 
 use super::render::{FaceRenderer, RenderOptions};
-use super::texture::{bake_albedo, render_textured, textured_faces};
+use super::texture::{bake_textured, render_textured, textured_faces};
 use super::{FaceParams, FitError, FitTarget, DEFAULT_DISTANCE_MM, SH_Y00};
 use crate::morphable::Morphable;
 
@@ -204,7 +204,7 @@ pub fn synthesize(model: &Morphable<f64>, o: &SynthOptions) -> Result<Synthetic,
 }
 
 /// A random albedo texture `[size, size, 3]`: the per-vertex albedo of `p` on the textured faces
-/// ([`textured_faces`]) baked into uv space ([`bake_albedo`]) times `1 + d(u, v)`, clamped to [0, 1], where the detail `d` is a sum of
+/// baked into uv space ([`bake_textured`]) times `1 + d(u, v)`, clamped to [0, 1], where the detail `d` is a sum of
 /// eight random plane waves (2 to 24 cycles across the uv square, random direction, phase and
 /// per-channel weight) scaled so that `|d| <= amplitude`: freckle- to cheek-sized variation that
 /// no per-vertex albedo on ICT's mesh represents exactly.
@@ -215,25 +215,12 @@ pub fn random_texture(
     amplitude: f64,
     rng: &mut Rng,
 ) -> Result<Array3<f64>, FitError> {
-    let uvs = model.uvs().ok_or_else(|| {
-        FitError::Invalid(format!(
-            "model {} has no uvs: it cannot be textured",
-            model.name()
-        ))
-    })?;
     if size < 2 || !(0.0..1.0).contains(&amplitude) {
         return Err(FitError::Invalid(format!(
             "random texture of side {size} and amplitude {amplitude}: need side >= 2 and amplitude in [0, 1)"
         )));
     }
-    // Only the textured faces: other parts (ICT's eyeballs) may share their uv space.
-    let skin: Vec<[u32; 3]> = model
-        .faces()
-        .iter()
-        .zip(textured_faces(model))
-        .filter_map(|(f, t)| t.then_some(*f))
-        .collect();
-    let baked = bake_albedo(uvs, &skin, &p.albedo(model)?, &[], size);
+    let baked = bake_textured(model, &textured_faces(model), &p.albedo(model)?, size)?;
     let waves: Vec<([f64; 2], f64, [f64; 3])> = (0..8)
         .map(|_| {
             let cycles = rng.uniform(2.0, 24.0);
@@ -272,13 +259,7 @@ mod tests {
     fn random_texture_is_the_baked_albedo_times_bounded_detail() {
         let m = crate::face::default_face::<f64>();
         let p = FaceParams::neutral(&m);
-        let skin: Vec<[u32; 3]> = m
-            .faces()
-            .iter()
-            .zip(textured_faces(&m))
-            .filter_map(|(f, t)| t.then_some(*f))
-            .collect();
-        let baked = bake_albedo(m.uvs().unwrap(), &skin, &p.albedo(&m).unwrap(), &[], 32);
+        let baked = bake_textured(&m, &textured_faces(&m), &p.albedo(&m).unwrap(), 32).unwrap();
         let flat = random_texture(&m, &p, 32, 0.0, &mut Rng::new(1)).unwrap();
         assert_eq!(flat, baked.texels);
         let t = random_texture(&m, &p, 32, 0.3, &mut Rng::new(1)).unwrap();

@@ -81,6 +81,31 @@ pub fn textured_faces(model: &Morphable<f64>) -> Vec<bool> {
         .collect()
 }
 
+/// Per-vertex `albedo` `[V, 3]` of the faces flagged in `textured` ([`textured_faces`])
+/// baked into a `size x size` texture in the model's uv space ([`bake_albedo`]). Only those
+/// faces: other parts (ICT's eyeballs) may share their uv space. Errors when the model has no
+/// uvs.
+pub fn bake_textured(
+    model: &Morphable<f64>,
+    textured: &[bool],
+    albedo: &Array2<f64>,
+    size: usize,
+) -> Result<BakedTexture, FitError> {
+    let uvs = model.uvs().ok_or_else(|| {
+        FitError::Invalid(format!(
+            "model {} has no uvs: it cannot be textured",
+            model.name()
+        ))
+    })?;
+    let faces: Vec<[u32; 3]> = model
+        .faces()
+        .iter()
+        .zip(textured)
+        .filter_map(|(f, &t)| t.then_some(*f))
+        .collect();
+    Ok(bake_albedo(uvs, &faces, albedo, &[], size))
+}
+
 /// A texture baked from per-vertex values ([`bake_albedo`]).
 #[derive(Clone, Debug)]
 pub struct BakedTexture {
@@ -285,38 +310,15 @@ pub fn fit_texture(
         )));
     }
     params.check(model)?;
-    let uvs = model.uvs().ok_or_else(|| {
-        FitError::Invalid(format!(
-            "model {} has no uvs: the texture stage needs them",
-            model.name()
-        ))
-    })?;
-    let renderer = FaceRenderer::new(model, render.clone())?;
     let textured = Arc::new(textured_faces(model));
-
     // The prior: the fitted per-vertex albedo of the textured faces, baked.
-    let albedo = params.albedo(model)?;
-    let skin: Vec<[u32; 3]> = model
-        .faces()
-        .iter()
-        .zip(textured.iter())
-        .filter_map(|(f, &t)| t.then_some(*f))
-        .collect();
-    let baked = bake_albedo(uvs, &skin, &albedo, &[], o.size);
+    let baked = bake_textured(model, &textured, &params.albedo(model)?, o.size)?;
+    let renderer = FaceRenderer::new(model, render.clone())?;
     let prior = Arc::new(baked.texels.clone().into_dyn());
     let chart = Arc::new(baked.chart.iter().copied().collect::<Vec<bool>>());
 
     // The data: covered pixels of textured, photometric faces, weighted by n . v.
-    let photometric: Vec<bool> = model
-        .face_regions()
-        .iter()
-        .map(|&r| {
-            model
-                .regions()
-                .get(r as usize)
-                .is_some_and(|r| r.photometric)
-        })
-        .collect();
+    let photometric = model.photometric_faces();
     let s = renderer.surface_samples(params)?;
     let mut keep = Vec::new();
     for (i, &f) in s.face.iter().enumerate() {
