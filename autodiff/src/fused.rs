@@ -20,9 +20,14 @@
 //! the same order (the f32 polynomial kernels of `vmath` where the eager op uses them), so
 //! values are bit-identical in f32 and f64, and so are the gradients of row-varying inputs.
 //! The gradient of a row-invariant input broadcast over rows (a colour `[3]` times `[N, 3]`) is
-//! summed per chunk and the chunk sums are added in chunk order, where eager sums all `N` rows
-//! in one sequence: the two orders differ by rounding only (for `n` rows, within the usual
-//! `n eps` relative bound of a sum). A row-varying gradient that depends on such a sum (the
+//! summed per chunk (in independent partial sums, so that the sum vectorises) and the chunk
+//! sums are added in chunk order, where eager sums all `N` rows in one sequence: the two orders
+//! differ by rounding only (for `n` rows, within the usual `n eps` relative bound of a sum).
+//!
+//! Broadcasts are read without index maps where they have a shape of their own: one value per
+//! row spread over the row (`[N, 1]` as `[N, 3]`), and the same values on every row (`[3]` as
+//! `[N, 3]`); lane loops of width 1 to 4 (sums, normalisation) are compiled for their width, so
+//! that they vectorise across rows. A row-varying gradient that depends on such a sum (the
 //! tape reduces `x` over all rows to `s`, and a fused op uses `s` again with `x`) inherits the
 //! rounding and is equal to the same bound, not bit for bit. A fused op is recorded on the tape
 //! when it is materialised, so contributions from several ops may reach a shared input in another
@@ -162,6 +167,11 @@ enum Access {
     Full,
     /// A single value broadcast everywhere.
     Scalar,
+    /// One value per row, spread over the row's `w` elements (`[N, 1]` read as `[N, 3]`).
+    Spread,
+    /// The same `w` values on every row, `map[j]` of the argument (a `[3]` colour read as
+    /// `[N, 3]`).
+    Tile { map: Vec<u32> },
     /// General broadcast: output element `r * w + j` reads argument element
     /// `r * rstride + map[j]`.
     Expand { map: Vec<u32>, rstride: usize },
@@ -274,7 +284,110 @@ fn access(out: &[usize], out_row: bool, a: &[usize], a_row: bool) -> Access {
         }
     }
     let rstride = if out_row && a_row { strides[0] } else { 0 };
-    Access::Expand { map, rstride }
+    if rstride == 0 {
+        Access::Tile { map }
+    } else if rstride == 1 && map.iter().all(|&m| m == 0) {
+        Access::Spread
+    } else {
+        Access::Expand { map, rstride }
+    }
+}
+
+/// Runs `$body` with the lane width `$k` bound to a constant for the common widths 1 to 4
+/// (loops over a lane then unroll, and vectorise across rows), else to its runtime value.
+macro_rules! with_lane {
+    ($k:ident, $body:expr) => {
+        match $k {
+            1 => {
+                let $k = 1;
+                $body
+            }
+            2 => {
+                let $k = 2;
+                $body
+            }
+            3 => {
+                let $k = 3;
+                $body
+            }
+            4 => {
+                let $k = 4;
+                $body
+            }
+            _ => $body,
+        }
+    };
+}
+
+/// `o[r * w + j] = a[r]`: one value per row spread over its `w` elements.
+#[inline(always)]
+fn spread<T: Real>(o: &mut [T], a: &[T], w: usize) {
+    with_lane!(w, {
+        for (o, &v) in o.chunks_exact_mut(w).zip(a) {
+            o.iter_mut().for_each(|o| *o = v);
+        }
+    })
+}
+
+/// `o[r] = ((0 + x[r w]) + x[r w + 1]) + ...`: each row's `w` values summed in order (the
+/// eager sum over the last axis, and the eager reduction of a spread gradient).
+#[inline(always)]
+fn sum_rows<T: Real>(o: &mut [T], x: &[T], w: usize) {
+    with_lane!(w, {
+        for (o, lane) in o.iter_mut().zip(x.chunks_exact(w)) {
+            let mut acc = T::zero();
+            for &v in lane {
+                acc += v;
+            }
+            *o = acc;
+        }
+    })
+}
+
+/// Lanes of the blocked column sums in [`sum_columns`] (a multiple of every lane width 1 to 4,
+/// 6, 8, 12 and 16).
+const COL_BLOCK: usize = 48;
+
+/// `r[map[j]] += sum_rows x[row * w + j]` (`r` zeroed by the caller), the reduction of a tiled
+/// gradient: blocks of `COL_BLOCK` values are added lane-wise into independent partial sums
+/// (vectorised), folded in lane order, then the rows left over. A fixed order for a chunk, not
+/// the eager row-by-row order: the difference is rounding (module docs).
+#[inline(always)]
+fn sum_columns<T: Real>(r: &mut [T], x: &[T], map: &[u32]) {
+    let w = map.len();
+    let mut rest = x;
+    if COL_BLOCK.is_multiple_of(w) && x.len() >= 2 * COL_BLOCK {
+        let mut acc = [T::zero(); COL_BLOCK];
+        let mut blocks = x.chunks_exact(COL_BLOCK);
+        for b in &mut blocks {
+            for (a, &v) in acc.iter_mut().zip(b) {
+                *a += v;
+            }
+        }
+        for (i, &a) in acc.iter().enumerate() {
+            r[map[i % w] as usize] += a;
+        }
+        rest = blocks.remainder();
+    }
+    for row in rest.chunks_exact(w) {
+        for (&v, &m) in row.iter().zip(map) {
+            r[m as usize] += v;
+        }
+    }
+}
+
+/// The sum of `x` (a scalar's broadcast gradient): in order for short `x`, else in
+/// [`crate::tensor::sum_slice`]'s fixed vectorised order.
+#[inline(always)]
+fn sum_all<T: Real>(x: &[T]) -> T {
+    if x.len() < 64 {
+        let mut a = T::zero();
+        for &v in x {
+            a += v;
+        }
+        return a;
+    }
+    crate::tensor::sum_slice(x)
 }
 
 /// Plans the fused op of `dag`, or `None` when its shapes do not fit the row/chunk scheme
@@ -961,6 +1074,24 @@ impl<T: Real> FusedOp<T> {
             Access::Full => Opd::S(base),
             Access::Scalar if n > 1 => Opd::C(base[0]),
             Access::Scalar => Opd::S(&base[..1]),
+            Access::Spread => {
+                spread(sized(buf, n), base, w);
+                Opd::S(&buf[..])
+            }
+            Access::Tile { map } => {
+                // The first row, then doubling copies (one row pattern for every row).
+                let o = sized(buf, n);
+                for (o, &m) in o.iter_mut().zip(map) {
+                    *o = base[m as usize];
+                }
+                let mut filled = map.len().min(n);
+                while filled < n {
+                    let c = filled.min(n - filled);
+                    o.copy_within(0..c, filled);
+                    filled += c;
+                }
+                Opd::S(&buf[..])
+            }
             Access::Expand { map, rstride } => {
                 let o = sized(buf, n);
                 let rows = n / w.max(1);
@@ -1019,15 +1150,7 @@ impl<T: Real> FusedOp<T> {
                 }
                 Kind::SumLast(_) => {
                     let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
-                    let x = at_s(x);
-                    let k = nd.lane;
-                    for (o, lane) in out.iter_mut().zip(x.chunks_exact(k)) {
-                        let mut acc = T::zero();
-                        for &v in lane {
-                            acc += v;
-                        }
-                        *o = acc;
-                    }
+                    sum_rows(out, at_s(x), nd.lane);
                 }
                 Kind::SliceLast(a, b) => {
                     let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
@@ -1041,13 +1164,15 @@ impl<T: Real> FusedOp<T> {
                     let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
                     let x = at_s(x);
                     let k = nd.lane;
-                    for (o, lane) in out.chunks_exact_mut(k).zip(x.chunks_exact(k)) {
-                        let len = lane.iter().map(|&v| v * v).sum::<T>().sqrt();
-                        let nrm = if len < eps { eps } else { len };
-                        for (o, &v) in o.iter_mut().zip(lane) {
-                            *o = v / nrm;
+                    with_lane!(k, {
+                        for (o, lane) in out.chunks_exact_mut(k).zip(x.chunks_exact(k)) {
+                            let len = lane.iter().map(|&v| v * v).sum::<T>().sqrt();
+                            let nrm = if len < eps { eps } else { len };
+                            for (o, &v) in o.iter_mut().zip(lane) {
+                                *o = v / nrm;
+                            }
                         }
-                    }
+                    })
                 }
             }
             if self.anomaly && bad.is_none() && !out.iter().all(|v| v.is_finite()) {
@@ -1093,11 +1218,18 @@ impl<T: Real> FusedOp<T> {
             Access::Full => contrib,
             Access::Scalar => {
                 let r = sized(red, 1);
-                let mut a = T::zero();
-                for &v in contrib {
-                    a += v;
-                }
-                r[0] = a;
+                r[0] = sum_all(contrib);
+                r
+            }
+            Access::Spread => {
+                let r = sized(red, alen);
+                sum_rows(r, contrib, w);
+                r
+            }
+            Access::Tile { map } => {
+                let r = sized(red, alen);
+                r.iter_mut().for_each(|v| *v = T::zero());
+                sum_columns(r, contrib, map);
                 r
             }
             Access::Expand { map, rstride } => {
@@ -1247,9 +1379,7 @@ impl<T: Real> FusedOp<T> {
                     if wants(src) {
                         let k = nd.lane;
                         let t = sized(tmp, n * k);
-                        for (o, &gv) in t.chunks_exact_mut(k).zip(g) {
-                            o.iter_mut().for_each(|o| *o = gv);
-                        }
+                        spread(t, g, k);
                         give!(src, acc, t);
                     }
                 }
@@ -1272,24 +1402,26 @@ impl<T: Real> FusedOp<T> {
                         let x = at_s(self.operand(src, acc, n, nd.w, vals, c, e2));
                         let k = nd.lane;
                         let t = sized(tmp, n);
-                        for (((o, x), y), g) in t
-                            .chunks_exact_mut(k)
-                            .zip(x.chunks_exact(k))
-                            .zip(y.chunks_exact(k))
-                            .zip(g.chunks_exact(k))
-                        {
-                            let len = x.iter().map(|&v| v * v).sum::<T>().sqrt();
-                            if len > eps {
-                                let yg: T = y.iter().zip(g.iter()).map(|(&a, &b)| a * b).sum();
-                                for ((o, &yv), &gv) in o.iter_mut().zip(y).zip(g) {
-                                    *o = (gv - yv * yg) / len;
-                                }
-                            } else {
-                                for (o, &gv) in o.iter_mut().zip(g) {
-                                    *o = gv / eps;
+                        with_lane!(k, {
+                            for (((o, x), y), g) in t
+                                .chunks_exact_mut(k)
+                                .zip(x.chunks_exact(k))
+                                .zip(y.chunks_exact(k))
+                                .zip(g.chunks_exact(k))
+                            {
+                                let len = x.iter().map(|&v| v * v).sum::<T>().sqrt();
+                                if len > eps {
+                                    let yg: T = y.iter().zip(g.iter()).map(|(&a, &b)| a * b).sum();
+                                    for ((o, &yv), &gv) in o.iter_mut().zip(y).zip(g) {
+                                        *o = (gv - yv * yg) / len;
+                                    }
+                                } else {
+                                    for (o, &gv) in o.iter_mut().zip(g) {
+                                        *o = gv / eps;
+                                    }
                                 }
                             }
-                        }
+                        });
                         give!(src, acc, t);
                     }
                 }

@@ -318,6 +318,12 @@ impl<T: Real> Tape<T> {
         self.no_grad_depth.get() > 0
     }
 
+    /// A poisoned variable carrying `err` (the tape's first error, unless it already has one):
+    /// how a function composed of tape ops reports inputs it cannot take, as an op would.
+    pub fn poisoned(&self, err: AutodiffError) -> Var<'_, T> {
+        self.poison(err, 1)[0]
+    }
+
     fn poison(&self, err: AutodiffError, n_outputs: usize) -> SmallVec<[Var<'_, T>; 2]> {
         let mut inner = self.inner.borrow_mut();
         if inner.error.is_none() {

@@ -1,16 +1,15 @@
 //! Shading and texturing speed, f32:
-//! - fused against composed Phong (one directional, one point and one ambient light) and SH
-//!   lighting on 512 x 512 fragments, forward + backward (gradients for every input);
-//! - the composed Phong and SH models run through the tape's fused evaluation
-//!   (`Tape::fused`, group entries `composed_tape_fused`);
+//! - Phong (one directional, one point and one ambient light) and SH lighting on 512 x 512
+//!   fragments, forward + backward (gradients for every input): the entry points `shade` and
+//!   `sh_shade` (the composed models inside `Tape::fused`, entries `fused`) against the same
+//!   composed code run op by op (`composed`);
 //! - the toon/rim custom shader of `examples/custom_shader.rs` on the 256 x 256 fragments of a
 //!   full-frame render, forward + backward, eager against fused (the shader stage alone: the
 //!   rasterization is the same either way);
 //! - texture sampling throughput (samples per second), bilinear and trilinear, forward and
 //!   forward + backward, 512 x 512 samples from a 512 x 512 RGB texture.
 //!
-//! `cargo bench -p tapestry-render-ops --bench shading`; the fused/composed ratio is the
-//! ratio of the `composed` and `fused` times of a group.
+//! `cargo bench -p tapestry-render-ops --bench shading`.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -52,15 +51,13 @@ fn data() -> Data {
     }
 }
 
-/// Which implementation of a lighting model to run.
+/// Which evaluation of a lighting model to run.
 #[derive(Clone, Copy, PartialEq)]
 enum Path {
-    /// The hand-fused op.
+    /// The entry point: the composed model inside `Tape::fused`.
     Fused,
     /// The composed tape code, op by op.
     Composed,
-    /// The composed tape code inside `Tape::fused`.
-    TapeFused,
 }
 
 impl Path {
@@ -68,7 +65,6 @@ impl Path {
         match self {
             Path::Fused => "fused",
             Path::Composed => "composed",
-            Path::TapeFused => "composed_tape_fused",
         }
     }
 }
@@ -95,11 +91,6 @@ fn phong<'t>(tape: &'t Tape<f32>, d: &Data, path: Path) -> (Var<'t, f32>, Vec<Va
     let y = match path {
         Path::Fused => shade(&surf, &m, &lights, eye),
         Path::Composed => shade_composed(&surf, &m, &lights, eye),
-        Path::TapeFused => {
-            let y = tape.fused(|| shade_composed(&surf, &m, &lights, eye));
-            tape.materialize(&[y]);
-            y
-        }
     };
     (y, vec![pos, nrm, alb, dir, eye])
 }
@@ -108,7 +99,7 @@ fn bench_shading(c: &mut Criterion) {
     let d = data();
     let mut g = c.benchmark_group("phong_512x512_fwd_bwd");
     g.throughput(Throughput::Elements(N as u64));
-    for path in [Path::Fused, Path::Composed, Path::TapeFused] {
+    for path in [Path::Fused, Path::Composed] {
         g.bench_function(path.name(), |b| {
             b.iter(|| {
                 let tape = Tape::new();
@@ -124,7 +115,7 @@ fn bench_shading(c: &mut Criterion) {
     g.finish();
     let mut g = c.benchmark_group("sh_512x512_fwd_bwd");
     g.throughput(Throughput::Elements(N as u64));
-    for path in [Path::Fused, Path::Composed, Path::TapeFused] {
+    for path in [Path::Fused, Path::Composed] {
         g.bench_function(path.name(), |b| {
             b.iter(|| {
                 let tape = Tape::new();
@@ -136,11 +127,6 @@ fn bench_shading(c: &mut Criterion) {
                 let y = match path {
                     Path::Fused => sh_shade(n, a, s),
                     Path::Composed => sh_shade_composed(n, a, s),
-                    Path::TapeFused => {
-                        let y = tape.fused(|| sh_shade_composed(n, a, s));
-                        tape.materialize(&[y]);
-                        y
-                    }
                 };
                 let gr = tape.vjp(y, d.grad.clone()).unwrap();
                 gr.get(s).map(|g| g.len()).unwrap_or(0) + gr.get(n).map(|g| g.len()).unwrap_or(0)

@@ -1,15 +1,18 @@
-//! Explicit AVX2 + FMA `f32` kernels of the matrix-vector products `A x` and `A^T g` over a
-//! row-major block of rows, for the memory-bound linear models (a 3DMM basis is tens of
-//! megabytes, read once per product).
+//! Explicit `f32` kernels of the matrix-vector products `A x` and `A^T g` over a row-major
+//! block of rows, for the memory-bound linear models (a 3DMM basis is tens of megabytes, read
+//! once per product): AVX-512 where the CPU has it, else AVX2 + FMA, chosen at run time, with
+//! the same bits either way (the AVX-512 forms add the same products in the same order; a test
+//! holds them bit for bit).
 //!
 //! Both walk the block one row at a time, so the matrix is read as ONE sequential stream.
-//! Measured on this project's 2-core AMD EPYC machine (`B` = [105000, 199] f32, 1 thread):
-//! a row-at-a-time product streams `B` at the speed of a plain summing read (about 11-12 GB/s),
-//! while the same arithmetic walking four consecutive rows side by side (four interleaved
-//! streams 796 bytes apart) reaches only about 6-7 GB/s. A row of `K` values is `K / 8` full
-//! 8-lane vectors and a masked tail (`vmaskmovps`), so no scalar remainder loop runs per row.
-//! The compiler's own vectorisation of the generic kernels (in [`super::linalg`]) is kept for
-//! `f64` and for CPUs without AVX2 + FMA.
+//! Measured on a 2-core AMD EPYC machine (`B` = [105000, 199] f32, 1 thread): a row-at-a-time
+//! product streams `B` at the speed of a plain summing read (about 11-12 GB/s), while the same
+//! arithmetic walking four consecutive rows side by side (four interleaved streams 796 bytes
+//! apart) reaches only about 6-7 GB/s. A row of `K` values is `K / 8` full 8-lane vectors and
+//! a masked tail, so no scalar remainder loop runs per row. The AVX-512 `A^T g` keeps the `K`
+//! accumulators in registers across a block's rows, where the AVX2 kernel (16 registers)
+//! loads and stores them on every row. The compiler's own vectorisation of the generic kernels
+//! (in [`super::linalg`]) is kept for `f64` and for CPUs without AVX2 + FMA.
 
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
@@ -25,7 +28,7 @@ mod avx2 {
     }
 
     #[inline(always)]
-    unsafe fn hsum(v: __m256) -> f32 {
+    pub(super) unsafe fn hsum(v: __m256) -> f32 {
         let h = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
         let h = _mm_hadd_ps(h, h);
         _mm_cvtss_f32(_mm_hadd_ps(h, h))
@@ -116,47 +119,209 @@ mod avx2 {
     }
 }
 
-/// Whether the explicit kernels can run on this CPU.
-#[inline]
-fn available() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+/// The AVX-512 forms of the two kernels, bit-identical to the AVX2 ones:
+/// - `gemv_rows` keeps the AVX2 kernel's four 8-lane accumulators as two 16-lane ones
+///   (`[a0 | a1]`, `[a2 | a3]`), so every lane sums the same products in the same order, and
+///   reduces them in the same tree;
+/// - `axpy_rows` adds `g[r] * rows[r]` to each `acc` value by one FMA per row in row order, as
+///   the AVX2 kernel does, but holds up to 256 accumulators in registers across the block's
+///   rows (the AVX2 kernel loads and stores `acc` on every row: its 16 registers cannot hold
+///   a 3DMM's 199), so the only memory stream is the rows.
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use std::arch::x86_64::*;
+
+    /// The first `n` of 16 lanes.
+    #[inline(always)]
+    fn first(n: usize) -> __mmask16 {
+        ((1u32 << n) - 1) as __mmask16
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
+
+    /// # Safety
+    /// The CPU has AVX-512F, AVX2 and FMA; `rows.len() == ys.len() * x.len()`.
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    pub unsafe fn gemv_rows(rows: &[f32], x: &[f32], ys: &mut [f32]) {
+        let k = x.len();
+        // The AVX2 kernel's vectors: `full` of 8 lanes, in groups of four (`quads`), `left`
+        // more, then a tail of `t` lanes into `a3`.
+        let (full, t) = (k / 8, k % 8);
+        let (quads, left) = (full / 4, full % 4);
+        let o = 32 * quads;
+        // Lanes of the leftover vectors: a0 (and a1) in `z0`, a2 in `z1`; the tail in `z1`'s
+        // upper half, read from 8 values before the tail so that its lanes 8.. hold it.
+        let (m0, m1) = match left {
+            0 => (0, 0),
+            1 => (first(8), 0),
+            2 => (first(16), 0),
+            _ => (first(16), first(8)),
+        };
+        let mt = first(8 + t) & !first(8);
+        // SAFETY: unmasked loads read 16 values at `32 q (+ 16)` for q < quads (inside the
+        // first 32 * quads <= k values); the masked loads' enabled lanes lie in `o..k`
+        // (leftovers: o + 8 * left == 8 * full; tail: lanes 8..8 + t of `8 full - 8` are
+        // `8 full .. k`); masked-off lanes are not read.
+        unsafe {
+            let xp = x.as_ptr();
+            let x0 = _mm512_maskz_loadu_ps(m0, xp.add(o));
+            let x1 = _mm512_maskz_loadu_ps(m1, xp.add(o + 16));
+            let xt = _mm512_maskz_loadu_ps(mt, xp.add(8 * full).wrapping_sub(8));
+            for (r, y) in ys.iter_mut().enumerate() {
+                let p = rows.as_ptr().add(r * k);
+                let (mut z0, mut z1) = (_mm512_setzero_ps(), _mm512_setzero_ps());
+                for q in 0..quads {
+                    let o = 32 * q;
+                    z0 = _mm512_fmadd_ps(_mm512_loadu_ps(p.add(o)), _mm512_loadu_ps(xp.add(o)), z0);
+                    z1 = _mm512_fmadd_ps(
+                        _mm512_loadu_ps(p.add(o + 16)),
+                        _mm512_loadu_ps(xp.add(o + 16)),
+                        z1,
+                    );
+                }
+                z0 = _mm512_mask3_fmadd_ps(_mm512_maskz_loadu_ps(m0, p.add(o)), x0, z0, m0);
+                z1 = _mm512_mask3_fmadd_ps(_mm512_maskz_loadu_ps(m1, p.add(o + 16)), x1, z1, m1);
+                let pt = p.add(8 * full).wrapping_sub(8);
+                z1 = _mm512_mask3_fmadd_ps(_mm512_maskz_loadu_ps(mt, pt), xt, z1, mt);
+                // (a0 + a1) + (a2 + a3), then the AVX2 kernel's horizontal sum.
+                let lo = _mm256_add_ps(_mm512_castps512_ps256(z0), _mm512_extractf32x8_ps::<1>(z0));
+                let hi = _mm256_add_ps(_mm512_castps512_ps256(z1), _mm512_extractf32x8_ps::<1>(z1));
+                *y = super::avx2::hsum(_mm256_add_ps(lo, hi));
+            }
+        }
+    }
+
+    /// `acc[..16 NV]` (the last vector masked by `mt`) `+= sum_r g[r] rows[r][..]`, with the
+    /// accumulators in registers; row `r` starts at `rows + r * k`.
+    #[inline(always)]
+    unsafe fn axpy_panel<const NV: usize>(
+        rows: *const f32,
+        k: usize,
+        g: &[f32],
+        acc: *mut f32,
+        mt: __mmask16,
+    ) {
+        let mask = |c: usize| if c + 1 == NV { mt } else { 0xffff };
+        // SAFETY (caller): the panel's NV vectors (the last masked) lie inside every row and
+        // inside `acc`.
+        unsafe {
+            let mut a = [_mm512_setzero_ps(); NV];
+            for (c, ac) in a.iter_mut().enumerate() {
+                *ac = _mm512_maskz_loadu_ps(mask(c), acc.add(16 * c));
+            }
+            for (r, &gr) in g.iter().enumerate() {
+                let p = rows.add(r * k);
+                let gv = _mm512_set1_ps(gr);
+                for (c, ac) in a.iter_mut().enumerate() {
+                    *ac = _mm512_fmadd_ps(gv, _mm512_maskz_loadu_ps(mask(c), p.add(16 * c)), *ac);
+                }
+            }
+            for (c, ac) in a.iter().enumerate() {
+                _mm512_mask_storeu_ps(acc.add(16 * c), mask(c), *ac);
+            }
+        }
+    }
+
+    /// # Safety
+    /// The CPU has AVX-512F, AVX2 and FMA; `rows.len() == g.len() * acc.len()`.
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    pub unsafe fn axpy_rows(rows: &[f32], g: &[f32], acc: &mut [f32]) {
+        let k = acc.len();
+        // Panels of up to 16 vectors (256 values) of every row.
+        let mut c0 = 0;
+        while c0 < k {
+            let n = (k - c0).min(256);
+            let nv = n.div_ceil(16);
+            let mt = first(n - 16 * (nv - 1));
+            // SAFETY: the panel is values c0..c0 + n of each row and of `acc`.
+            unsafe {
+                let (p, a) = (rows.as_ptr().add(c0), acc.as_mut_ptr().add(c0));
+                macro_rules! panel {
+                    ($($nv:literal)*) => {
+                        match nv {
+                            $($nv => axpy_panel::<$nv>(p, k, g, a, mt),)*
+                            _ => unreachable!("1 to 16 vectors"),
+                        }
+                    };
+                }
+                panel!(1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16);
+            }
+            c0 += n;
+        }
     }
 }
 
-/// `ys[r] = rows[r] . x` for consecutive rows of length `x.len()`; `false` (nothing done) when
-/// the CPU lacks AVX2 + FMA.
-pub(crate) fn gemv_rows(rows: &[f32], x: &[f32], ys: &mut [f32]) -> bool {
+/// Which explicit kernels run.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Isa {
+    /// Neither: the generic kernels of [`super::linalg`] run.
+    None,
+    Avx2,
+    Avx512,
+}
+
+/// The widest kernels this CPU can run (detected once).
+fn isa() -> Isa {
+    static ISA: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
+    *ISA.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::is_x86_feature_detected as has;
+            if has!("avx2") && has!("fma") {
+                return if has!("avx512f") {
+                    Isa::Avx512
+                } else {
+                    Isa::Avx2
+                };
+            }
+        }
+        Isa::None
+    })
+}
+
+/// `ys[r] = rows[r] . x` for consecutive rows of length `x.len()` with the kernels of `isa`;
+/// `false` (nothing done) for [`Isa::None`].
+fn gemv_rows_with(isa: Isa, rows: &[f32], x: &[f32], ys: &mut [f32]) -> bool {
     assert_eq!(rows.len(), ys.len() * x.len(), "gemv_rows: block shape");
-    if !available() {
-        return false;
+    match isa {
+        Isa::None => return false,
+        // SAFETY (both): `isa` is this CPU's (or, in tests, one it runs), and the shapes were
+        // checked above.
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 => unsafe { avx2::gemv_rows(rows, x, ys) },
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx512 => unsafe { avx512::gemv_rows(rows, x, ys) },
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => return false,
     }
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: the features are present and the shapes were checked above.
-    unsafe {
-        avx2::gemv_rows(rows, x, ys)
-    };
     true
 }
 
-/// `acc += sum_r g[r] rows[r]` for consecutive rows of length `acc.len()`; `false` (nothing
-/// done) when the CPU lacks AVX2 + FMA.
-pub(crate) fn axpy_rows(rows: &[f32], g: &[f32], acc: &mut [f32]) -> bool {
+/// `acc += sum_r g[r] rows[r]` for consecutive rows of length `acc.len()` with the kernels of
+/// `isa`; `false` (nothing done) for [`Isa::None`].
+fn axpy_rows_with(isa: Isa, rows: &[f32], g: &[f32], acc: &mut [f32]) -> bool {
     assert_eq!(rows.len(), g.len() * acc.len(), "axpy_rows: block shape");
-    if !available() {
-        return false;
+    match isa {
+        Isa::None => return false,
+        // SAFETY: as in `gemv_rows_with`.
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 => unsafe { avx2::axpy_rows(rows, g, acc) },
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx512 => unsafe { avx512::axpy_rows(rows, g, acc) },
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => return false,
     }
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: the features are present and the shapes were checked above.
-    unsafe {
-        avx2::axpy_rows(rows, g, acc)
-    };
     true
+}
+
+/// `ys[r] = rows[r] . x` for consecutive rows of length `x.len()`, with the widest kernels
+/// the CPU runs; `false` (nothing done) when it lacks AVX2 + FMA.
+pub(crate) fn gemv_rows(rows: &[f32], x: &[f32], ys: &mut [f32]) -> bool {
+    gemv_rows_with(isa(), rows, x, ys)
+}
+
+/// `acc += sum_r g[r] rows[r]` for consecutive rows of length `acc.len()`, with the widest
+/// kernels the CPU runs; `false` (nothing done) when it lacks AVX2 + FMA.
+pub(crate) fn axpy_rows(rows: &[f32], g: &[f32], acc: &mut [f32]) -> bool {
+    axpy_rows_with(isa(), rows, g, acc)
 }
 
 #[cfg(test)]
@@ -164,40 +329,85 @@ mod tests {
     use super::*;
     use crate::rng::Rng;
 
-    /// Both kernels against f64 sums, for every tail length and for rows shorter than a vector.
+    /// The kernels this CPU runs: AVX2, and AVX-512 where present.
+    fn isas() -> Vec<Isa> {
+        match isa() {
+            Isa::None => vec![],
+            Isa::Avx2 => vec![Isa::Avx2],
+            Isa::Avx512 => vec![Isa::Avx2, Isa::Avx512],
+        }
+    }
+
+    /// Both kernels against f64 sums, for every tail length, rows shorter than a vector and
+    /// rows wider than one AVX-512 panel, on each instruction set the CPU runs.
     #[test]
     fn kernels_match_f64_sums() {
-        if !available() {
+        assert!(
+            !cfg!(target_arch = "x86_64") || isa() != Isa::None,
+            "x86-64 without AVX2"
+        );
+        let mut r = Rng::new(5);
+        for isa in isas() {
+            for k in [
+                1usize, 3, 7, 8, 9, 15, 16, 17, 24, 31, 32, 33, 199, 300, 513,
+            ] {
+                let m = 13;
+                let a: Vec<f32> = (0..m * k).map(|_| r.normal() as f32).collect();
+                let x: Vec<f32> = (0..k).map(|_| r.normal() as f32).collect();
+                let g: Vec<f32> = (0..m).map(|_| r.normal() as f32).collect();
+                let mut y = vec![0.0f32; m];
+                assert!(gemv_rows_with(isa, &a, &x, &mut y));
+                for (i, &yi) in y.iter().enumerate() {
+                    let want: f64 = (0..k).map(|j| a[i * k + j] as f64 * x[j] as f64).sum();
+                    let scale: f64 = (0..k).map(|j| (a[i * k + j] * x[j]).abs() as f64).sum();
+                    assert!(
+                        (yi as f64 - want).abs() <= 1e-6 * scale.max(1.0),
+                        "{isa:?} k {k} row {i}"
+                    );
+                }
+                let mut acc = vec![0.5f32; k];
+                assert!(axpy_rows_with(isa, &a, &g, &mut acc));
+                for (j, &v) in acc.iter().enumerate() {
+                    let want: f64 = 0.5
+                        + (0..m)
+                            .map(|i| g[i] as f64 * a[i * k + j] as f64)
+                            .sum::<f64>();
+                    let scale: f64 = 0.5
+                        + (0..m)
+                            .map(|i| (g[i] * a[i * k + j]).abs() as f64)
+                            .sum::<f64>();
+                    assert!(
+                        (v as f64 - want).abs() <= 1e-6 * scale,
+                        "{isa:?} k {k} col {j}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// The AVX-512 kernels give the AVX2 kernels' bits (the same sums in the same order).
+    #[test]
+    fn avx512_kernels_equal_avx2_bit_for_bit() {
+        if isa() != Isa::Avx512 {
+            eprintln!("no AVX-512 on this CPU: only the AVX2 kernels run");
             return;
         }
-        let mut r = Rng::new(5);
-        for k in [1usize, 3, 7, 8, 9, 15, 16, 17, 24, 31, 199] {
-            let m = 13;
-            let a: Vec<f32> = (0..m * k).map(|_| r.normal() as f32).collect();
-            let x: Vec<f32> = (0..k).map(|_| r.normal() as f32).collect();
-            let g: Vec<f32> = (0..m).map(|_| r.normal() as f32).collect();
-            let mut y = vec![0.0f32; m];
-            assert!(gemv_rows(&a, &x, &mut y));
-            for (i, &yi) in y.iter().enumerate() {
-                let want: f64 = (0..k).map(|j| a[i * k + j] as f64 * x[j] as f64).sum();
-                let scale: f64 = (0..k).map(|j| (a[i * k + j] * x[j]).abs() as f64).sum();
-                assert!(
-                    (yi as f64 - want).abs() <= 1e-6 * scale.max(1.0),
-                    "k {k} row {i}"
-                );
-            }
-            let mut acc = vec![0.5f32; k];
-            assert!(axpy_rows(&a, &g, &mut acc));
-            for (j, &v) in acc.iter().enumerate() {
-                let want: f64 = 0.5
-                    + (0..m)
-                        .map(|i| g[i] as f64 * a[i * k + j] as f64)
-                        .sum::<f64>();
-                let scale: f64 = 0.5
-                    + (0..m)
-                        .map(|i| (g[i] * a[i * k + j]).abs() as f64)
-                        .sum::<f64>();
-                assert!((v as f64 - want).abs() <= 1e-6 * scale, "k {k} col {j}");
+        let mut r = Rng::new(9);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for k in 1usize..=70 {
+            for k in [k, k + 190, k + 250] {
+                let m = 5;
+                let a: Vec<f32> = (0..m * k).map(|_| r.normal() as f32).collect();
+                let x: Vec<f32> = (0..k).map(|_| r.normal() as f32).collect();
+                let g: Vec<f32> = (0..m).map(|_| r.normal() as f32).collect();
+                let (mut y2, mut y5) = (vec![0.0f32; m], vec![0.0f32; m]);
+                gemv_rows_with(Isa::Avx2, &a, &x, &mut y2);
+                gemv_rows_with(Isa::Avx512, &a, &x, &mut y5);
+                assert_eq!(bits(&y2), bits(&y5), "gemv k {k}");
+                let (mut a2, mut a5) = (x.clone(), x.clone());
+                axpy_rows_with(Isa::Avx2, &a, &g, &mut a2);
+                axpy_rows_with(Isa::Avx512, &a, &g, &mut a5);
+                assert_eq!(bits(&a2), bits(&a5), "axpy k {k}");
             }
         }
     }

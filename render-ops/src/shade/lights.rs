@@ -7,7 +7,6 @@
 //! `PointLights`); ambient lights add up; an SH light holds 9 rows of RGB coefficients.
 
 use autodiff::{tensor, Real, Tape, Tensor, Var};
-use ndarray::{ArrayD, IxDyn};
 
 use crate::scene;
 
@@ -202,20 +201,6 @@ impl<'t, T: Real> Lights<'t, T> {
             }
         }
         out
-    }
-
-    /// Stacks `f` of every light of a kind into `[L, 3]` (a `[0, 3]` constant when there are
-    /// none).
-    pub(crate) fn stacked<L>(
-        tape: &'t Tape<T>,
-        lights: &[L],
-        f: impl Fn(&L) -> Var<'t, T>,
-    ) -> Var<'t, T> {
-        if lights.is_empty() {
-            return tape.constant(ArrayD::zeros(IxDyn(&[0, 3])));
-        }
-        let vars: Vec<Var<'t, T>> = lights.iter().map(|l| f(l).reshape(&[3])).collect();
-        tape.stack(&vars, 0)
     }
 }
 

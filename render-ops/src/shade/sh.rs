@@ -15,10 +15,10 @@
 //! and Hanrahan); the shaded colour is linear in them. Normals are normalised first with the
 //! safe `x / max(|x|, eps)`: a zero normal gives `Y = (0.282095, 0, ..., 0, -0.315392, 0, 0)`.
 
-use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
+use autodiff::{AutodiffError, Real, Result as AdResult, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
 
-use super::{chunked, grad_tensor, normalize3, normalize3_vjp, rows_of, Rows, SAFE_EPS, V3};
+use super::{check_rows, normalize3, SAFE_EPS};
 
 /// `Y_00` constant.
 pub const SH_C0: f64 = 0.282095;
@@ -63,132 +63,39 @@ pub(crate) fn sh_eval_vjp<T: Real>(n: [T; 3], g: [T; 9]) -> [T; 3] {
     ]
 }
 
-struct ShOp<T: Real> {
-    eps: T,
-}
-
-fn read<'a, T: Real>(
-    inputs: &'a [ndarray::CowArray<'_, T, ndarray::IxDyn>],
-) -> AdResult<(usize, Rows<'a, T>, Rows<'a, T>, &'a [T])> {
-    const OP: &str = "sh_shade";
-    if inputs[0].ndim() != 2 {
-        return Err(AutodiffError::shape(
-            OP,
-            &[inputs[0].shape()],
-            "normals must be [N, 3]",
-        ));
-    }
-    let n = inputs[0].shape()[0];
-    let nrm = rows_of(OP, "normals", &inputs[0], n, false)?;
-    let alb = rows_of(OP, "albedo", &inputs[1], n, true)?;
-    if inputs[2].shape() != [9, 3] {
-        return Err(AutodiffError::shape(
-            OP,
-            &[inputs[2].shape()],
-            "SH coefficients must be [9, 3]",
-        ));
-    }
-    Ok((n, nrm, alb, inputs[2].as_slice().expect("std")))
-}
-
-fn irradiance<T: Real>(y: &[T; 9], sh: &[T]) -> V3<T> {
-    let mut e = [T::zero(); 3];
-    for k in 0..9 {
-        for c in 0..3 {
-            e[c] += sh[3 * k + c] * y[k];
-        }
-    }
-    e
-}
-
-impl<T: Real> Op<T> for ShOp<T> {
-    fn name(&self) -> &'static str {
-        "sh_shade"
-    }
-    fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
-        let std = super::standard_inputs(inputs);
-        let (n, nrm, alb, sh) = read(&std)?;
-        let (out, _) = chunked::<T, _>(n, 3, 0, |start, o, _| {
-            for (r, row) in o.chunks_mut(3).enumerate() {
-                let i = start + r;
-                let y = sh_eval(normalize3(nrm.get(i), self.eps).0);
-                let e = irradiance(&y, sh);
-                let a = alb.get(i);
-                row.copy_from_slice(&[a[0] * e[0], a[1] * e[1], a[2] * e[2]]);
-            }
-        });
-        Ok(vec![
-            ArrayD::from_shape_vec(IxDyn(&[n, 3]), out).expect("n x 3")
-        ])
-    }
-    fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
-        let std = super::standard_inputs(ctx.inputs);
-        let (n, nrm, alb, sh) = read(&std)?;
-        let g = ctx.grad_outputs[0].as_standard_layout();
-        let g = Rows {
-            data: g.as_slice().expect("std"),
-            per_row: true,
-        };
-        // Row: [gn (3), galbedo (3, when per row)]; shared: [gsh (27), galbedo (3)].
-        let width = if alb.per_row { 6 } else { 3 };
-        let (rows, shared) = chunked::<T, _>(n, width, 30, |start, o, acc| {
-            for (r, row) in o.chunks_mut(width).enumerate() {
-                let i = start + r;
-                let gi = g.get(i);
-                let (nh, len) = normalize3(nrm.get(i), self.eps);
-                let y = sh_eval(nh);
-                let e = irradiance(&y, sh);
-                let a = alb.get(i);
-                let ge = [a[0] * gi[0], a[1] * gi[1], a[2] * gi[2]];
-                let mut gy = [T::zero(); 9];
-                for k in 0..9 {
-                    for c in 0..3 {
-                        acc[3 * k + c] += y[k] * ge[c];
-                        gy[k] += sh[3 * k + c] * ge[c];
-                    }
-                }
-                let gn = normalize3_vjp(len, nh, sh_eval_vjp(nh, gy), self.eps);
-                row[0..3].copy_from_slice(&gn);
-                let ga = [e[0] * gi[0], e[1] * gi[1], e[2] * gi[2]];
-                if alb.per_row {
-                    row[3..6].copy_from_slice(&ga);
-                } else {
-                    for c in 0..3 {
-                        acc[27 + c] += ga[c];
-                    }
-                }
-            }
-        });
-        let column = |off: usize| -> Vec<T> {
-            rows.chunks(width)
-                .flat_map(|r| r[off..off + 3].to_vec())
-                .collect()
-        };
-        Ok(vec![
-            ctx.needs_grad[0].then(|| grad_tensor(&[n, 3], column(0))),
-            ctx.needs_grad[1].then(|| {
-                if alb.per_row {
-                    grad_tensor(&[n, 3], column(3))
-                } else {
-                    grad_tensor(ctx.inputs[1].shape(), shared[27..30].to_vec())
-                }
-            }),
-            ctx.needs_grad[2].then(|| grad_tensor(&[9, 3], shared[..27].to_vec())),
-        ])
-    }
-}
-
 /// SH-lit colours `[N, 3]` of normals `[N, 3]` (any length), albedo `[N, 3]` or `[3]` and
-/// coefficients `[9, 3]` (fused op; see the module docs for the model).
+/// coefficients `[9, 3]` (see the module docs for the model).
+///
+/// [`sh_shade_composed`] run inside [`autodiff::Tape::fused`]: the per-fragment work is one
+/// fused op, evaluated chunk by chunk in cache with the chain rule derived from the graph.
+/// Inputs of the wrong shape poison the result with an error naming them.
 pub fn sh_shade<'t, T: Real>(
     normal: Var<'t, T>,
     albedo: Var<'t, T>,
     coeffs: Var<'t, T>,
 ) -> Var<'t, T> {
-    let op = ShOp {
-        eps: T::from_f64c(SAFE_EPS),
+    const OP: &str = "sh_shade";
+    let t = normal.tape();
+    let check = || -> AdResult<()> {
+        let ns = normal.shape();
+        if ns.len() != 2 || ns[1] != 3 {
+            return Err(AutodiffError::shape(OP, &[&ns], "normals must be [N, 3]"));
+        }
+        check_rows(OP, "albedo", albedo, ns[0], true)?;
+        let cs = coeffs.shape();
+        if cs != [9, 3] {
+            return Err(AutodiffError::shape(
+                OP,
+                &[&cs],
+                "SH coefficients must be [9, 3]",
+            ));
+        }
+        Ok(())
     };
-    normal.tape().apply(op, &[normal, albedo, coeffs])
+    match check() {
+        Ok(()) => t.fused(|| sh_shade_composed(normal, albedo, coeffs)),
+        Err(e) => t.poisoned(e),
+    }
 }
 
 /// The 9 basis functions at the (normalised) normals `[N, 3]`: `[N, 9]` (plain values).

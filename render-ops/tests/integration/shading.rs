@@ -429,13 +429,14 @@ fn reflection_models_fused_equal_composed() {
     );
 }
 
-/// The composed Phong family and SH use only ops the tape fuses, so inside `Tape::fused` each
-/// model's per-fragment work is ONE fused op (no mask read from a value, no concat or matrix
-/// product ending the region), and that op agrees with the hand-fused one and passes
-/// gradcheck. (SH's coefficient rows are sliced on the tape before the region: ops on 27
-/// numbers, not recorded when the coefficients are constants, as in the count below.)
+/// The composed Phong family and SH use only ops the tape fuses, so the entry points `shade`
+/// and `sh_shade` (the composed code inside `Tape::fused`) record ONE fused op for a model's
+/// per-fragment work (no mask read from a value, no concat or matrix product ending the
+/// region), which agrees with the eager composed graph and passes gradcheck. (SH's coefficient
+/// rows are sliced on the tape before the region: ops on 27 numbers, not recorded when the
+/// coefficients are constants, as in the count below.)
 #[test]
-fn composed_models_are_one_fused_op() {
+fn shading_models_are_one_fused_op() {
     /// Ops recorded by `f`, with the inputs numbered in `constant` as constants.
     fn ops_of(f: Build, inputs: &[Tensor<f64>], constant: &[usize]) -> usize {
         let tape = Tape::new();
@@ -454,40 +455,97 @@ fn composed_models_are_one_fused_op() {
         (
             "lambert",
             |_t, v| phong_with(Reflectance::Lambert, true, true, v),
-            |t, v| t.fused(|| phong_with(Reflectance::Lambert, false, true, v)),
+            |_t, v| phong_with(Reflectance::Lambert, false, true, v),
         ),
         (
             "phong",
             |_t, v| phong_with(Reflectance::Phong, true, true, v),
-            |t, v| t.fused(|| phong_with(Reflectance::Phong, false, true, v)),
+            |_t, v| phong_with(Reflectance::Phong, false, true, v),
         ),
         (
             "blinn/ka=albedo",
             |_t, v| phong_with(Reflectance::BlinnPhong, true, false, v),
-            |t, v| t.fused(|| phong_with(Reflectance::BlinnPhong, false, false, v)),
+            |_t, v| phong_with(Reflectance::BlinnPhong, false, false, v),
         ),
     ];
     let opts = GradcheckOptions::default();
-    for (name, hand, composed) in cases {
-        let n_fused = ops_of(composed, &inputs, &[]);
+    for (name, entry, eager) in cases {
+        let n_fused = ops_of(entry, &inputs, &[]);
         assert_eq!(n_fused, 1, "{name}: {n_fused} ops in the fused region");
-        agree(name, hand, composed, &inputs, 1e-10);
-        check(name, gradcheck(composed, &inputs, &opts).unwrap());
+        agree(name, entry, eager, &inputs, 1e-10);
+        check(name, gradcheck(entry, &inputs, &opts).unwrap());
     }
     let sh: (Build, Build) = (
         |_t, v| sh_shade(v[0], v[1], v[2]),
-        |t, v| t.fused(|| sh_shade_composed(v[0], v[1], v[2])),
+        |_t, v| sh_shade_composed(v[0], v[1], v[2]),
     );
     for shared in [false, true] {
         let inputs = sh_inputs(shared);
         assert_eq!(
-            ops_of(sh.1, &inputs, &[2]),
+            ops_of(sh.0, &inputs, &[2]),
             1,
             "sh (shared albedo {shared})"
         );
         agree("sh", sh.0, sh.1, &inputs, 1e-10);
-        check("sh", gradcheck(sh.1, &inputs, &opts).unwrap());
+        check("sh", gradcheck(sh.0, &inputs, &opts).unwrap());
     }
+}
+
+/// Inputs of the wrong shape give an error naming them (not a broadcast that happens to fit).
+#[test]
+fn shading_rejects_bad_shapes() {
+    let tape = Tape::<f64>::new();
+    let rows = |n: usize| tape.constant(ArrayD::zeros(IxDyn(&[n, 3])));
+    let err = |y: Var<'_, f64>| y.value().unwrap_err().to_string();
+    let lights = Lights::new().with_directional(DirectionalLight::constant(
+        &tape,
+        [0.0, 0.0, -1.0],
+        [1.0; 3],
+    ));
+    let m = Material::constant(&tape, Reflectance::Phong, [0.3; 3], 8.0);
+    let eye = tape.constant(ArrayD::zeros(IxDyn(&[3])));
+    let surf = |p, n, a| Surface {
+        position: p,
+        normal: n,
+        albedo: a,
+    };
+    let e = err(shade(
+        &surf(tape.constant(ArrayD::zeros(IxDyn(&[3]))), rows(4), rows(4)),
+        &m,
+        &lights,
+        eye,
+    ));
+    assert!(e.contains("positions must be [N, 3]"), "{e}");
+    let tape = Tape::<f64>::new();
+    let rows = |n: usize| tape.constant(ArrayD::zeros(IxDyn(&[n, 3])));
+    let m = Material::constant(&tape, Reflectance::Phong, [0.3; 3], 8.0);
+    let eye = tape.constant(ArrayD::zeros(IxDyn(&[3])));
+    let lights = Lights::new();
+    let e = err(shade(&surf(rows(4), rows(5), rows(4)), &m, &lights, eye));
+    assert!(e.contains("normals must be [4, 3]"), "{e}");
+    let tape = Tape::<f64>::new();
+    let rows = |n: usize| tape.constant(ArrayD::zeros(IxDyn(&[n, 3])));
+    let m = Material::constant(&tape, Reflectance::Phong, [0.3; 3], 8.0);
+    let eye = tape.constant(ArrayD::zeros(IxDyn(&[2])));
+    let e = err(shade(
+        &surf(rows(4), rows(4), rows(4)),
+        &m,
+        &Lights::new(),
+        eye,
+    ));
+    assert!(e.contains("eye must be [3]"), "{e}");
+    let tape = Tape::<f64>::new();
+    let rows = |n: usize| tape.constant(ArrayD::zeros(IxDyn(&[n, 3])));
+    let e = err(sh_shade(
+        rows(4),
+        rows(4),
+        tape.constant(ArrayD::zeros(IxDyn(&[9, 2]))),
+    ));
+    assert!(e.contains("SH coefficients must be [9, 3]"), "{e}");
+    let tape = Tape::<f64>::new();
+    let rows = |n: usize| tape.constant(ArrayD::zeros(IxDyn(&[n, 3])));
+    let e = err(sh_shade(rows(4), rows(2), rows(9)));
+    assert!(e.contains("albedo must be [4, 3] or [3]"), "{e}");
 }
 
 #[test]
