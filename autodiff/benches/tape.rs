@@ -17,7 +17,8 @@
 //!     4 MB buffer 116 times (116 x (read + write) = 232 passes) around a 256 MB ring of
 //!     buffers, larger than the last-level cache, so that it streams from memory as the chain
 //!     (whose 50 saved activations take 200 MB) does.
-//!     `fused_forward_backward_1e6_f32` runs the chain inside `Tape::fused` (one fused op).
+//!     `fused_forward_backward_1e6_f32` runs the chain inside `Tape::fused` (one fused op);
+//!     `fused_forward_no_grad_1e6_f32` its forward alone (the 50 ops' arithmetic, in cache).
 //! (c) `3dmm`: `y = mean + B a` with V = 35,000 vertices, B = [3V, K] = [105000, 199] f32 (a
 //!     constant shared with the tape, not copied), K = 199, loss `sum((y - target)^2)` (as
 //!     PyTorch's benchmark) and its gradient with respect to `a`. The memory bound is reading
@@ -130,6 +131,14 @@ fn bench_chain50(c: &mut Criterion) {
             let loss = tape.fused(|| chain50(x)).sum();
             let grads = tape.backward(loss).unwrap();
             black_box(grads.get(x).map(|t| t[[0]]))
+        })
+    });
+    // Its forward alone (no gradient asked): the arithmetic of the 50 ops in cache.
+    g.bench_function("fused_forward_no_grad_1e6_f32", |b| {
+        b.iter(|| {
+            let tape = Tape::<f32>::new();
+            let x = tape.constant(x0.clone());
+            black_box(tape.fused(|| chain50(x)).sum().item().unwrap())
         })
     });
     g.bench_function("forward_no_grad_1e6_f32", |b| {
