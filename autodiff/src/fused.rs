@@ -774,13 +774,7 @@ fn unary_fwd<T: Real>(k: Unary<T>, o: &mut [T], x: &[T]) {
         Unary::Sqrt => ew2(o, x, d, |v, _| v.sqrt()),
         Unary::Sin => ew1_fast(o, at_s(x), T::k_sin, T::k_trig_ok, T::sin),
         Unary::Cos => ew1_fast(o, at_s(x), T::k_cos, T::k_trig_ok, T::cos),
-        Unary::Tanh => {
-            if let (Some(of), Some(xf)) = (T::as_f32_mut(o), T::as_f32(at_s(x))) {
-                crate::vmath::tanh_slice(of, xf)
-            } else {
-                ew1_fast(o, at_s(x), T::k_tanh, |v| !v.is_nan(), T::tanh)
-            }
-        }
+        Unary::Tanh => ew1_fast(o, at_s(x), T::k_tanh, |v| !v.is_nan(), T::tanh),
         Unary::Sigmoid => ew1_fast(o, at_s(x), T::k_sigmoid, |v| (-v.abs()).k_exp_ok(), sigmoid),
         Unary::Relu => ew2(o, x, d, |v, z| if v < z { z } else { v }),
         Unary::Abs => ew2(o, x, d, |v, _| v.abs()),
@@ -1317,6 +1311,15 @@ impl<T: Real> FusedOp<T> {
                 }};
             }
             match nd.kind {
+                Kind::Unary(Unary::AddScalar(_)) => {
+                    let (src, acc) = (nd.args[0].0, &nd.args[0].1);
+                    if wants(src) {
+                        // d(x + c)/dx = 1: the node's gradient is the argument's contribution,
+                        // moved rather than copied (the sweep visits the node once).
+                        std::mem::swap(&mut grest[0], tmp);
+                        give!(src, acc, &tmp[..n]);
+                    }
+                }
                 Kind::Unary(k) => {
                     let (src, acc) = (nd.args[0].0, &nd.args[0].1);
                     if wants(src) {
@@ -1671,12 +1674,14 @@ impl<T: Real> FusedOp<T> {
             s.gset.iter_mut().for_each(|f| *f = false);
             s.eset.iter_mut().for_each(|f| *f = false);
             let seed = sized(&mut s.grads[ch.node], rows * ch.w);
-            for (e, v) in seed.iter_mut().enumerate() {
-                *v = if e % ch.w == ch.lane {
-                    T::one()
-                } else {
-                    T::zero()
-                };
+            if ch.w == 1 {
+                seed.fill(T::one());
+            } else {
+                seed.fill(T::zero());
+                seed[ch.lane..]
+                    .iter_mut()
+                    .step_by(ch.w)
+                    .for_each(|v| *v = T::one());
             }
             s.gset[ch.node] = true;
             backward_chunk(self, c, s, &p.needs);

@@ -176,7 +176,10 @@ fn build<T: Real>(n: usize, fill: impl Fn(&mut [MaybeUninit<T>], usize) + Sync) 
 
 /// Elementwise loop bodies, compiled three times on x86-64: for the baseline target, with AVX2 +
 /// FMA and with AVX-512, picked at run time (the same IEEE operations in each, so the results
-/// are bit-identical whichever runs: Rust never contracts a multiply and an add into an FMA). The closures are inlined into each, so that their arithmetic (and
+/// are bit-identical whichever runs: Rust never contracts a multiply and an add into an FMA,
+/// and the explicit `mul_add` and `floor` of [`crate::vmath`] are exact operations on every
+/// target, one instruction in the wide variants and libm calls in the baseline one). The
+/// closures are inlined into each, so that their arithmetic (and
 /// the polynomials of [`crate::vmath`]) vectorises at the wider width where available.
 macro_rules! multiversion_dispatch {
     ($name:ident, $body:ident, $out:ty, ($($a:ident: $ta:ty),*), $f:ident: [$($tf:tt)+]) => {
