@@ -308,39 +308,42 @@ fn isa() -> Isa {
     })
 }
 
+/// Runs `$kernel($args)` from the module of `$isa`; `false` (nothing done) for
+/// [`Isa::None`].
+macro_rules! on_isa {
+    ($isa:expr, $kernel:ident($($a:expr),*)) => {
+        match $isa {
+            Isa::None => false,
+            // SAFETY: `isa` is this CPU's (or, in tests, one it runs), and the callers checked
+            // the block's shape.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => {
+                unsafe { avx2::$kernel($($a),*) };
+                true
+            }
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => {
+                unsafe { avx512::$kernel($($a),*) };
+                true
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => false,
+        }
+    };
+}
+
 /// `ys[r] = rows[r] . x` for consecutive rows of length `x.len()` with the kernels of `isa`;
 /// `false` (nothing done) for [`Isa::None`].
 fn gemv_rows_with(isa: Isa, rows: &[f32], x: &[f32], ys: &mut [f32]) -> bool {
     assert_eq!(rows.len(), ys.len() * x.len(), "gemv_rows: block shape");
-    match isa {
-        Isa::None => return false,
-        // SAFETY (both): `isa` is this CPU's (or, in tests, one it runs), and the shapes were
-        // checked above.
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { avx2::gemv_rows(rows, x, ys) },
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx512 => unsafe { avx512::gemv_rows(rows, x, ys) },
-        #[cfg(not(target_arch = "x86_64"))]
-        _ => return false,
-    }
-    true
+    on_isa!(isa, gemv_rows(rows, x, ys))
 }
 
 /// `acc += sum_r g[r] rows[r]` for consecutive rows of length `acc.len()` with the kernels of
 /// `isa`; `false` (nothing done) for [`Isa::None`].
 fn axpy_rows_with(isa: Isa, rows: &[f32], g: &[f32], acc: &mut [f32]) -> bool {
     assert_eq!(rows.len(), g.len() * acc.len(), "axpy_rows: block shape");
-    match isa {
-        Isa::None => return false,
-        // SAFETY: as in `gemv_rows_with`.
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { avx2::axpy_rows(rows, g, acc) },
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx512 => unsafe { avx512::axpy_rows(rows, g, acc) },
-        #[cfg(not(target_arch = "x86_64"))]
-        _ => return false,
-    }
-    true
+    on_isa!(isa, axpy_rows(rows, g, acc))
 }
 
 /// `ys[r] = rows[r] . x` for consecutive rows of length `x.len()`, with the widest kernels
