@@ -7,8 +7,9 @@
 //! written to memory. Its backward is prepared in one of two ways ([`FusedBackward`]): it
 //! recomputes each chunk's forward in cache and runs the chain rule there (the op stores only
 //! its inputs and outputs: checkpointing at chunk granularity), or, for ops with few input and
-//! output channels, the forward runs the reverse sweep right away with a unit seed per output
-//! channel and keeps the per-row Jacobian (preaccumulation), so that the backward is `g J`.
+//! output channels, the forward also computes the per-row Jacobian (preaccumulation, by
+//! forward-mode tangents or by reverse sweeps with unit seeds) and keeps it, so that the
+//! backward is `g J`.
 //!
 //! Layout: every node is either *row-varying* (its axis 0 is the fused op's row axis of length
 //! `N`, the outputs' first dimension, sliced into chunks of whole rows) or *row-invariant* (it
@@ -33,14 +34,15 @@
 //! when it is materialised, so contributions from several ops may reach a shared input in another
 //! order than on the eager tape: equal up to the rounding of those terms' sum.
 //!
-//! A preaccumulated gradient is `g * (d_L * ... * d_1)` (the sweep's products with seed 1,
-//! then the output gradient) where eager computes `((g * d_L) * ...) * d_1` with the same
-//! factors: bit for bit when `g` = 1 (a `sum` after the op), otherwise within `2 (L + 1) u`
-//! relative along a chain of `L` ops (`u` the unit roundoff); where paths join, the sums
-//! `sum_o g_o J_o` round in another order than eager's single sweep, so the difference is a few
-//! ulp of the largest adjoint inside the graph (which `normalize` near a zero vector makes up
-//! to `1 / eps` times `|g|`). Gradients of row inputs stay bit-identical across thread counts
-//! and chunk sizes (each row's Jacobian comes from its own elements).
+//! A preaccumulated gradient is `g * (d_L * ... * d_1)` (the reverse sweep's products with
+//! seed 1, or the tangents' `(d_1 * d_2) * ... * d_L`, then the output gradient) where eager
+//! computes `((g * d_L) * ...) * d_1` with the same factors: bit for bit when `g` = 1 (a `sum`
+//! after the op) and the sweep is reverse, otherwise within `2 (L + 1) u` relative along a
+//! chain of `L` ops (`u` the unit roundoff); where paths join, the sums `sum_o g_o J_o` (and
+//! the tangents' sums) round in another order than eager's single sweep, so the difference is
+//! a few ulp of the largest adjoint inside the graph (which `normalize` near a zero vector
+//! makes up to `1 / eps` times `|g|`). Gradients of row inputs stay bit-identical across
+//! thread counts and chunk sizes (each row's Jacobian comes from its own elements).
 
 // Kernels index re-sliced slices of one length (`&a[..n]`): bounds checks vanish and the
 // loops vectorise.
@@ -75,17 +77,21 @@ pub const PREACC_MAX_IN: usize = 4;
 ///
 /// - `Recompute`: the op keeps only its inputs and outputs; the backward recomputes each
 ///   chunk's forward in cache, then sweeps it in reverse (checkpointing at chunk granularity).
-/// - `Preaccumulate`: the forward sweeps each chunk in reverse right away, once per output
-///   channel with a unit seed, and keeps the per-row Jacobian `d out / d in` (`n_in x n_out`
-///   values per row, Griewank & Walther, *Evaluating Derivatives*, 2nd ed., 2008, sec. 10.2
-///   "preaccumulation"); the backward is the product `g J`, memory-bound, with no recompute.
+/// - `Preaccumulate`: the forward computes each chunk's per-row Jacobian `d out / d in`
+///   (`n_in x n_out` values per row, Griewank & Walther, *Evaluating Derivatives*, 2nd ed.,
+///   2008, sec. 10.2 "preaccumulation") and keeps it; the backward is the product `g J`,
+///   memory-bound, with no recompute. The Jacobian comes from whichever direction needs
+///   fewer passes: forward-mode tangents, one per input channel, each node's computed right
+///   after its value while that is in cache (a `sin`, `cos`, `tanh`, `exp` or `sigmoid` in
+///   the same loop as its value, when there is one input channel), or reverse sweeps after the
+///   chunk's forward, one per output channel with a unit seed (ties: forward).
 ///   Only for ops whose inputs that require a gradient all vary by row (a per-row Jacobian
 ///   with respect to a broadcast input would need its sum over rows deferred to the seed).
 /// - `Auto` (default): `Preaccumulate` when the op has one output channel (`[N]` or `[N, 1]`
 ///   outputs, one per row, that carry a gradient) and at most [`PREACC_MAX_IN`] input
-///   channels: one sweep in the forward replaces the backward's recompute plus the same sweep,
-///   so it never does more arithmetic, and its Jacobian (at most 4 values per row) is no more
-///   bytes than the inputs a recompute reads again. `Recompute` otherwise.
+///   channels: one pass per input channel or one sweep in the forward replaces the
+///   backward's recompute plus a sweep, and its Jacobian (at most 4 values per row) is no
+///   more bytes than the inputs a recompute reads again. `Recompute` otherwise.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum FusedBackward {
     /// Preaccumulate by the rule above.
@@ -93,8 +99,15 @@ pub enum FusedBackward {
     Auto,
     /// Always recompute in the backward.
     Recompute,
-    /// Preaccumulate wherever the inputs allow it (tests and measurements).
+    /// Preaccumulate wherever the inputs allow it, in the direction with fewer sweeps
+    /// (tests and measurements).
     Preaccumulate,
+    /// Preaccumulate wherever the inputs allow it, by forward-mode tangents (one per input
+    /// channel, carried beside the values).
+    PreaccumulateForward,
+    /// Preaccumulate wherever the inputs allow it, by reverse sweeps (one per output channel,
+    /// after each chunk's forward).
+    PreaccumulateReverse,
 }
 
 /// What a recorded node computes.
@@ -218,6 +231,12 @@ struct Preacc<T> {
     channels: Vec<Channel>,
     /// The inputs whose Jacobian is kept (they require a gradient and reach an output).
     needs: Vec<bool>,
+    /// The input channels `(input, lane)` of the inputs in `needs`, in order.
+    inputs: Vec<(usize, usize)>,
+    /// Forward mode: one tangent per input channel, carried beside the values node by node
+    /// (when there are no more input channels than output channels); else one reverse sweep
+    /// per output channel after the forward.
+    tangents: bool,
     /// Per input `k` with `needs[k]`: `d out_o / d in_k[c]` at index `(r * n_out + o) * w_k + c`
     /// for row `r`, output channel `o`, input lane `c`.
     jac: Vec<Option<Vec<T>>>,
@@ -619,9 +638,19 @@ fn preaccumulation<T: Real>(
     if n_in == 0 || channels.is_empty() || (mode == FusedBackward::Auto && !auto) {
         return None;
     }
+    let inputs: Vec<(usize, usize)> = (0..needs.len())
+        .filter(|&k| needs[k])
+        .flat_map(|k| (0..ext[k].w).map(move |lane| (k, lane)))
+        .collect();
     Some(Preacc {
+        tangents: match mode {
+            FusedBackward::PreaccumulateForward => true,
+            FusedBackward::PreaccumulateReverse => false,
+            _ => inputs.len() <= channels.len(),
+        },
         channels,
         needs,
+        inputs,
         jac: Vec::new(),
     })
 }
@@ -799,31 +828,121 @@ fn unary_fwd<T: Real>(k: Unary<T>, o: &mut [T], x: &[T]) {
     }
 }
 
-/// `o = sin x` and `d = cos x` (with `cos`: `o = cos x`, `d = sin x`) from one argument
-/// reduction: the bits of `unary_fwd`'s `sin` and `cos` (fast kernels where `k_trig_ok`, libm
-/// elsewhere), with the derivative's factor kept for the backward sweep.
+/// `o = sin x` and `put(i, cos x)` (with `cos`: `o = cos x`, `put(i, sin x)`) from one
+/// argument reduction: the bits of `unary_fwd`'s `sin` and `cos` (fast kernels where
+/// `k_trig_ok`, libm elsewhere), with the derivative's factor handed to `put` (kept for the
+/// backward sweep, or multiplied into a tangent at once).
 #[inline(always)]
-fn sincos_fwd<T: Real>(o: &mut [T], d: &mut [T], x: &[T], cos: bool) {
+fn sincos_fwd<T: Real>(o: &mut [T], x: &[T], cos: bool, mut put: impl FnMut(usize, T)) {
     let n = o.len();
-    let (d, x) = (&mut d[..n], &x[..n]);
+    let x = &x[..n];
     let pick = |(s, c): (T, T)| if cos { (c, s) } else { (s, c) };
     let exact = |v: T| pick((v.sin(), v.cos()));
     if T::FAST_MATH {
         for i in 0..n {
-            (o[i], d[i]) = pick(x[i].k_sincos());
+            let d;
+            (o[i], d) = pick(x[i].k_sincos());
+            put(i, d);
         }
         if !x.iter().fold(true, |acc, &v| acc & v.k_trig_ok()) {
             for i in 0..n {
                 if !x[i].k_trig_ok() {
-                    (o[i], d[i]) = exact(x[i]);
+                    let d;
+                    (o[i], d) = exact(x[i]);
+                    put(i, d);
                 }
             }
         }
     } else {
         for i in 0..n {
-            (o[i], d[i]) = exact(x[i]);
+            let d;
+            (o[i], d) = exact(x[i]);
+            put(i, d);
         }
     }
+}
+
+/// `o = f(x)` and the tangent `to = der(t, x, o)` in one loop, with the fast `f32` kernel where
+/// `ok` and `exact` elsewhere (as [`ew1_fast`]).
+#[inline(always)]
+fn ew1_fast_tangent<T: Real>(
+    (o, to): (&mut [T], &mut [T]),
+    (x, t): (&[T], &[T]),
+    fast: impl Fn(T) -> T,
+    ok: impl Fn(T) -> bool,
+    exact: impl Fn(T) -> T,
+    der: impl Fn(T, T, T) -> T,
+) {
+    let n = o.len();
+    let (to, x, t) = (&mut to[..n], &x[..n], &t[..n]);
+    if !T::FAST_MATH {
+        for i in 0..n {
+            o[i] = exact(x[i]);
+            to[i] = der(t[i], x[i], o[i]);
+        }
+        return;
+    }
+    for i in 0..n {
+        o[i] = fast(x[i]);
+        to[i] = der(t[i], x[i], o[i]);
+    }
+    if !x.iter().fold(true, |acc, &v| acc & ok(v)) {
+        for i in 0..n {
+            if !ok(x[i]) {
+                o[i] = exact(x[i]);
+                to[i] = der(t[i], x[i], o[i]);
+            }
+        }
+    }
+}
+
+/// `o = f(x)` and `to = t f'(x)` in one pass for the unary ops whose value is a polynomial
+/// kernel (`sin`, `cos`, `tanh`, `exp`, `sigmoid`): the tangent's loads, product and store
+/// run beside the polynomial's arithmetic instead of in a pass of their own. The factors are
+/// `unary_bwd`'s, so the bits equal the value pass followed by the tangent pass. `false`
+/// (nothing written) for the other ops.
+#[inline(always)]
+fn unary_fwd_tangent<T: Real>(
+    k: Unary<T>,
+    (o, to): (&mut [T], &mut [T]),
+    x: &[T],
+    t: &[T],
+) -> bool {
+    let one = T::one();
+    match k {
+        Unary::Sin | Unary::Cos => {
+            let to = &mut to[..o.len()];
+            let t = &t[..o.len()];
+            if k == Unary::Cos {
+                sincos_fwd(o, x, true, |i, s| to[i] = -t[i] * s);
+            } else {
+                sincos_fwd(o, x, false, |i, c| to[i] = t[i] * c);
+            }
+        }
+        Unary::Tanh => ew1_fast_tangent(
+            (o, to),
+            (x, t),
+            T::k_tanh,
+            |v| !v.is_nan(),
+            T::tanh,
+            |g, _, y| g * (one - y * y),
+        ),
+        Unary::Exp => {
+            ew1_fast_tangent((o, to), (x, t), T::k_exp, T::k_exp_ok, T::exp, |g, _, y| {
+                g * y
+            })
+        }
+        Unary::Sigmoid => ew1_fast_tangent(
+            (o, to),
+            (x, t),
+            T::k_sigmoid,
+            |v| (-v.abs()).k_exp_ok(),
+            sigmoid,
+            |g, _, y| g * y * (one - y),
+        ),
+        _ => return false,
+    }
+    true
 }
 
 #[inline(always)]
@@ -895,6 +1014,76 @@ fn unary_bwd<T: Real>(k: Unary<T>, o: &mut [T], g: &[T], x: &[T], y: &[T]) {
             },
         ),
         Unary::Heaviside => ew3(o, g, d, d, |_, _, z| z),
+    }
+}
+
+/// `o = g * d` for `sin` (`d = cos x`, kept by the forward) and `o = -g * d` for `cos`
+/// (`d = sin x`): the sweep's product with the derivative's kept factor.
+#[inline(always)]
+fn sincos_bwd<T: Real>(cos: bool, o: &mut [T], g: &[T], d: &[T]) {
+    let (d, z) = (Opd::S(d), Opd::C(T::zero()));
+    if cos {
+        ew3(o, g, d, z, |g, s, _| -g * s)
+    } else {
+        ew3(o, g, d, z, |g, c, _| g * c)
+    }
+}
+
+/// `o = 2 g x`, the derivative of `x * x` (as the eager `MulSelfOp`: `t = g x; t + t`).
+#[inline(always)]
+fn mulself_bwd<T: Real>(o: &mut [T], g: &[T], x: Opd<T>) {
+    ew3(o, g, x, Opd::C(T::zero()), |g, x, _| {
+        let t = g * x;
+        t + t
+    })
+}
+
+/// `o = (g - y (y . g)) / |x|` per lane group of `k` (`g / eps` where `|x| <= eps`): the
+/// product of `g` with the Jacobian of `y = x / max(|x|, eps)`, which is symmetric, so the
+/// same formula gives the reverse sweep's `g J` and the forward tangent `J t`.
+#[inline(always)]
+fn normalize_bwd<T: Real>(o: &mut [T], g: &[T], x: &[T], y: &[T], k: usize, eps: T) {
+    with_lane!(k, {
+        for (((o, x), y), g) in o
+            .chunks_exact_mut(k)
+            .zip(x.chunks_exact(k))
+            .zip(y.chunks_exact(k))
+            .zip(g.chunks_exact(k))
+        {
+            let len = x.iter().map(|&v| v * v).sum::<T>().sqrt();
+            if len > eps {
+                let yg: T = y.iter().zip(g.iter()).map(|(&a, &b)| a * b).sum();
+                for ((o, &yv), &gv) in o.iter_mut().zip(y).zip(g) {
+                    *o = (gv - yv * yg) / len;
+                }
+            } else {
+                for (o, &gv) in o.iter_mut().zip(g) {
+                    *o = gv / eps;
+                }
+            }
+        }
+    });
+}
+
+/// `o[r, ..] = x[r, a..b]` for rows of `k` lanes (`x[..., a..b]`, and its tangent).
+#[inline(always)]
+fn slice_lanes<T: Real>(o: &mut [T], x: &[T], k: usize, (a, b): (usize, usize)) {
+    for (o, lane) in o.chunks_exact_mut(b - a).zip(x.chunks_exact(k)) {
+        o.copy_from_slice(&lane[a..b]);
+    }
+}
+
+/// A unit seed for one channel: `rows` rows of `w` values, 1 at `lane` and 0 elsewhere.
+fn unit_seed<T: Real>(v: &mut Vec<T>, rows: usize, w: usize, lane: usize) {
+    let seed = sized(v, rows * w);
+    if w == 1 {
+        seed.fill(T::one());
+    } else {
+        seed.fill(T::zero());
+        seed[lane..]
+            .iter_mut()
+            .step_by(w)
+            .for_each(|v| *v = T::one());
     }
 }
 
@@ -981,6 +1170,66 @@ fn binary_bwd<T: Real>(kind: Binary, k: usize, o: &mut [T], g: &[T], a: Opd<T>, 
     }
 }
 
+/// An argument's values `base` read in a node's layout (local length `n`, `w` elements per
+/// row) through its access: the slice itself, one value, or a broadcast expanded into `buf`.
+#[inline(always)]
+fn gather<'a, T: Real>(
+    base: &'a [T],
+    acc: &Access,
+    n: usize,
+    w: usize,
+    buf: &'a mut Vec<T>,
+) -> Opd<'a, T> {
+    match acc {
+        Access::Full => Opd::S(base),
+        Access::Scalar if n > 1 => Opd::C(base[0]),
+        Access::Scalar => Opd::S(&base[..1]),
+        Access::Spread => {
+            spread(sized(buf, n), base, w);
+            Opd::S(&buf[..])
+        }
+        Access::Tile { map } => {
+            // The first row, then doubling copies (one row pattern for every row).
+            let o = sized(buf, n);
+            for (o, &m) in o.iter_mut().zip(map) {
+                *o = base[m as usize];
+            }
+            let mut filled = map.len().min(n);
+            while filled < n {
+                let c = filled.min(n - filled);
+                o.copy_within(0..c, filled);
+                filled += c;
+            }
+            Opd::S(&buf[..])
+        }
+        Access::Expand { map, rstride } => {
+            let o = sized(buf, n);
+            let rows = n / w.max(1);
+            for r in 0..rows {
+                let src = &base[r * rstride..];
+                for (o, &m) in o[r * w..(r + 1) * w].iter_mut().zip(map) {
+                    *o = src[m as usize];
+                }
+            }
+            Opd::S(&buf[..])
+        }
+    }
+}
+
+/// [`Scratch::tat`] of a tangent known to be zero.
+const ZERO: u32 = u32::MAX;
+
+/// What a chunk's forward computes besides the values.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Keep {
+    /// The values only.
+    Values,
+    /// The factors a reverse sweep reuses (`cos x` of a live `sin`, `sin x` of `cos`).
+    Derivs,
+    /// Those, and the forward-mode tangents of the preaccumulation, node by node.
+    Tangents,
+}
+
 /// Per-thread buffers of the chunk interpreter.
 struct Scratch<T> {
     vals: Vec<Vec<T>>,
@@ -995,10 +1244,18 @@ struct Scratch<T> {
     exp: [Vec<T>; 3],
     tmp: Vec<T>,
     red: Vec<T>,
+    /// Forward-mode tangents (preaccumulation with [`Preacc::tangents`]): `d node_j / d
+    /// channel q` on the chunk is `tans[q][tat[q][j]]`, or zero where `tat[q][j]` is [`ZERO`]
+    /// (a node holds its own tangent, or, for `x + c`, its argument's); `seeds[q]` the unit
+    /// seed of channel `q`; `tgat` the arguments' tangents expanded by a broadcast.
+    tans: Vec<Vec<Vec<T>>>,
+    tat: Vec<Vec<u32>>,
+    seeds: Vec<Vec<T>>,
+    tgat: [Vec<T>; 2],
 }
 
 impl<T: Real> Scratch<T> {
-    fn new(nodes: usize, ext: usize) -> Self {
+    fn new(nodes: usize, ext: usize, channels: usize) -> Self {
         Scratch {
             vals: (0..nodes).map(|_| Vec::new()).collect(),
             derivs: (0..nodes).map(|_| Vec::new()).collect(),
@@ -1010,6 +1267,12 @@ impl<T: Real> Scratch<T> {
             exp: [Vec::new(), Vec::new(), Vec::new()],
             tmp: Vec::new(),
             red: Vec::new(),
+            tans: (0..channels)
+                .map(|_| (0..nodes).map(|_| Vec::new()).collect())
+                .collect(),
+            tat: vec![vec![ZERO; nodes]; channels],
+            seeds: (0..channels).map(|_| Vec::new()).collect(),
+            tgat: [Vec::new(), Vec::new()],
         }
     }
 }
@@ -1064,60 +1327,77 @@ impl<T: Real> FusedOp<T> {
             Src::Ext(k) => self.ext_slice(k, c),
             Src::Node(i) => &vals[i],
         };
-        match acc {
-            Access::Full => Opd::S(base),
-            Access::Scalar if n > 1 => Opd::C(base[0]),
-            Access::Scalar => Opd::S(&base[..1]),
-            Access::Spread => {
-                spread(sized(buf, n), base, w);
-                Opd::S(&buf[..])
-            }
-            Access::Tile { map } => {
-                // The first row, then doubling copies (one row pattern for every row).
-                let o = sized(buf, n);
-                for (o, &m) in o.iter_mut().zip(map) {
-                    *o = base[m as usize];
-                }
-                let mut filled = map.len().min(n);
-                while filled < n {
-                    let c = filled.min(n - filled);
-                    o.copy_within(0..c, filled);
-                    filled += c;
-                }
-                Opd::S(&buf[..])
-            }
-            Access::Expand { map, rstride } => {
-                let o = sized(buf, n);
-                let rows = n / w.max(1);
-                for r in 0..rows {
-                    let src = &base[r * rstride..];
-                    for (o, &m) in o[r * w..(r + 1) * w].iter_mut().zip(map) {
-                        *o = src[m as usize];
-                    }
-                }
-                Opd::S(&buf[..])
-            }
+        gather(base, acc, n, w, buf)
+    }
+
+    /// The forward-mode tangent of argument `(src, acc)` in the node's layout (as
+    /// [`Self::operand`] reads its value), for the input channel whose input is `k_in` and whose
+    /// chunk of seed values is `seed`; `None` when it is zero (the argument does not depend on
+    /// that input).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn tangent_operand<'a>(
+        &self,
+        src: Src,
+        acc: &Access,
+        n: usize,
+        w: usize,
+        (k_in, seed): (usize, &'a [T]),
+        tans: &'a [Vec<T>],
+        tat: &[u32],
+        buf: &'a mut Vec<T>,
+    ) -> Option<&'a [T]> {
+        let base: &'a [T] = match src {
+            Src::Ext(k) if k == k_in => seed,
+            Src::Node(i) if tat[i] != ZERO => &tans[tat[i] as usize],
+            _ => return None,
+        };
+        if let Access::Scalar = acc {
+            let b = sized(buf, n);
+            b.fill(base[0]);
+            return Some(b);
         }
+        Some(at_s(gather(base, acc, n, w, buf)))
     }
 
     /// Evaluates every node on one chunk into `s.vals`; with anomaly checks on, returns the
-    /// first node holding a non-finite value. With `keep` (a backward sweep follows), live
-    /// `sin` and `cos` nodes also keep their derivative's factor in `s.derivs`.
+    /// first node holding a non-finite value. With `keep` beyond the values, live `sin` and
+    /// `cos` nodes also keep their derivative's factor in `s.derivs`, and with
+    /// [`Keep::Tangents`] every node's tangents follow its value (while it is in cache).
     #[inline(always)]
-    fn eval_forward(&self, c: &Chunk<'_, T>, s: &mut Scratch<T>, keep: bool) -> Option<usize> {
+    fn eval_forward(&self, c: &Chunk<'_, T>, s: &mut Scratch<T>, keep: Keep) -> Option<usize> {
         let mut bad = None;
-        let [e0, e1, e2] = &mut s.exp;
+        let tangents = match &self.preacc {
+            Some(p) if keep == Keep::Tangents => {
+                for (q, &(k, lane)) in p.inputs.iter().enumerate() {
+                    // The same pattern for every chunk of the same length.
+                    let w = self.ext[k].w;
+                    if s.seeds[q].len() != (c.r1 - c.r0) * w {
+                        unit_seed(&mut s.seeds[q], c.r1 - c.r0, w, lane);
+                    }
+                }
+                Some(p)
+            }
+            _ => None,
+        };
         for (j, nd) in self.nodes.iter().enumerate() {
+            s.dset[j] = false;
+            // One input channel: a polynomial op computes its tangent in the same loop.
+            let with_tangent = match tangents {
+                Some(p) if p.inputs.len() == 1 => self.unary_with_tangent(j, p.inputs[0].0, c, s),
+                _ => false,
+            };
+            let [e0, e1, e2] = &mut s.exp;
             let n = self.local_len(nd.row, nd.w, c);
             let (done, rest) = s.vals.split_at_mut(j);
             let out = sized(&mut rest[0], n);
             let done: &[Vec<T>] = done;
-            s.dset[j] = false;
             match nd.kind {
-                Kind::Unary(k @ (Unary::Sin | Unary::Cos)) if keep && nd.live => {
+                _ if with_tangent => {}
+                Kind::Unary(k @ (Unary::Sin | Unary::Cos)) if keep != Keep::Values && nd.live => {
                     let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
                     let d = sized(&mut s.derivs[j], n);
-                    sincos_fwd(out, d, at_s(x), k == Unary::Cos);
+                    sincos_fwd(out, at_s(x), k == Unary::Cos, |i, v| d[i] = v);
                     s.dset[j] = true;
                 }
                 Kind::Unary(k) => {
@@ -1148,11 +1428,7 @@ impl<T: Real> FusedOp<T> {
                 }
                 Kind::SliceLast(a, b) => {
                     let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
-                    let x = at_s(x);
-                    let k = nd.lane;
-                    for (o, lane) in out.chunks_exact_mut(b - a).zip(x.chunks_exact(k)) {
-                        o.copy_from_slice(&lane[a..b]);
-                    }
+                    slice_lanes(out, at_s(x), nd.lane, (a, b));
                 }
                 Kind::Normalize(eps) => {
                     let x = self.operand(nd.args[0].0, &nd.args[0].1, n, nd.w, done, c, e0);
@@ -1172,8 +1448,199 @@ impl<T: Real> FusedOp<T> {
             if self.anomaly && bad.is_none() && !out.iter().all(|v| v.is_finite()) {
                 bad = Some(j);
             }
+            if let (Some(p), false) = (tangents, with_tangent) {
+                self.eval_tangents(p, j, c, s);
+            }
         }
         bad
+    }
+
+    /// Node `j`'s value and its tangent for the one input channel (input `k_in`) in one pass,
+    /// when it is a polynomial unary op ([`unary_fwd_tangent`]) whose argument has a tangent;
+    /// `false` (nothing computed) otherwise.
+    #[inline(always)]
+    fn unary_with_tangent(
+        &self,
+        j: usize,
+        k_in: usize,
+        c: &Chunk<'_, T>,
+        s: &mut Scratch<T>,
+    ) -> bool {
+        let nd = &self.nodes[j];
+        let (Kind::Unary(k), (src, Access::Full), true) = (nd.kind, &nd.args[0], nd.live) else {
+            return false;
+        };
+        let Scratch {
+            vals,
+            tans,
+            tat,
+            seeds,
+            ..
+        } = s;
+        let (tat, (tdone, trest)) = (&mut tat[0], tans[0].split_at_mut(j));
+        let (done, rest) = vals.split_at_mut(j);
+        let (x, t): (&[T], &[T]) = match *src {
+            Src::Ext(e) if e == k_in => (self.ext_slice(e, c), &seeds[0]),
+            Src::Node(i) if tat[i] != ZERO => (&done[i], &tdone[tat[i] as usize]),
+            _ => return false,
+        };
+        let n = self.local_len(nd.row, nd.w, c);
+        let (o, to) = (sized(&mut rest[0], n), sized(&mut trest[0], n));
+        if !unary_fwd_tangent(k, (o, to), x, t) {
+            return false;
+        }
+        tat[j] = j as u32;
+        true
+    }
+
+    /// Forward-mode derivatives of node `j`, whose value is computed: for every input channel
+    /// `q` of the preaccumulation, `s.tans[q][j] = d node_j / d channel q` on the chunk (Griewank
+    /// & Walther, sec. 3.1, tangent propagation). The per-element factors are the reverse
+    /// sweep's: an elementwise node's Jacobian is diagonal and `normalize`'s symmetric, so `J t`
+    /// is the sweep's formula with `g = t`; broadcasts read an argument's tangent as they read
+    /// its value; a sum over lanes sums tangents, and a slice slices them. Tangents known to be
+    /// zero (of nodes that do not depend on the channel's input) are flagged, not computed.
+    #[inline(always)]
+    fn eval_tangents(&self, p: &Preacc<T>, j: usize, c: &Chunk<'_, T>, s: &mut Scratch<T>) {
+        let nd = &self.nodes[j];
+        let Scratch {
+            vals,
+            derivs,
+            dset,
+            exp: [e0, e1, _],
+            tmp,
+            tans,
+            tat,
+            seeds,
+            tgat: [t0, t1],
+            ..
+        } = s;
+        let n = self.local_len(nd.row, nd.w, c);
+        let vals: &[Vec<T>] = vals;
+        let y = &vals[j][..n];
+        let z = T::zero();
+        for (q, &(k_in, _)) in p.inputs.iter().enumerate() {
+            let tat = &mut tat[q];
+            tat[j] = ZERO;
+            if !nd.live {
+                continue;
+            }
+            if let (Kind::Unary(Unary::AddScalar(_)), (Src::Node(i), Access::Full)) =
+                (nd.kind, &nd.args[0])
+            {
+                // d(x + c) = dx: the argument's tangent, not a copy of it.
+                tat[j] = tat[*i];
+                continue;
+            }
+            let (done, rest) = tans[q].split_at_mut(j);
+            let done: &[Vec<T>] = done;
+            let seed = (k_in, &seeds[q][..]);
+            macro_rules! tan {
+                ($i:expr, $buf:expr) => {
+                    self.tangent_operand(
+                        nd.args[$i].0,
+                        &nd.args[$i].1,
+                        n,
+                        nd.w,
+                        seed,
+                        done,
+                        tat,
+                        $buf,
+                    )
+                };
+            }
+            macro_rules! val {
+                ($i:expr, $buf:expr) => {
+                    self.operand(nd.args[$i].0, &nd.args[$i].1, n, nd.w, vals, c, $buf)
+                };
+            }
+            let out = sized(&mut rest[0], n);
+            // Closures would be compiled apart from the multiversioned caller: plain matches.
+            let set = match nd.kind {
+                Kind::Unary(k) => match tan!(0, t0) {
+                    Some(t) if dset[j] => {
+                        sincos_bwd(k == Unary::Cos, out, t, &derivs[j]);
+                        true
+                    }
+                    Some(t) => {
+                        unary_bwd(k, out, t, at_s(val!(0, e0)), y);
+                        true
+                    }
+                    None => false,
+                },
+                Kind::Binary(kind) => {
+                    let (ta, tb) = (tan!(0, t0), tan!(1, t1));
+                    let (a, b) = (val!(0, e0), val!(1, e1));
+                    match (ta, tb) {
+                        (Some(ta), Some(tb)) => {
+                            binary_bwd(kind, 0, out, ta, a, b);
+                            let u = sized(tmp, n);
+                            binary_bwd(kind, 1, u, tb, a, b);
+                            for (o, &v) in out.iter_mut().zip(&u[..]) {
+                                *o += v;
+                            }
+                            true
+                        }
+                        (Some(ta), None) => {
+                            binary_bwd(kind, 0, out, ta, a, b);
+                            true
+                        }
+                        (None, Some(tb)) => {
+                            binary_bwd(kind, 1, out, tb, a, b);
+                            true
+                        }
+                        (None, None) => false,
+                    }
+                }
+                Kind::MulSelf => match tan!(0, t0) {
+                    Some(t) => {
+                        mulself_bwd(out, t, val!(0, e0));
+                        true
+                    }
+                    None => false,
+                },
+                Kind::Select => {
+                    let (ta, tb) = (tan!(1, t0), tan!(2, t1));
+                    if ta.is_some() || tb.is_some() {
+                        let m = val!(0, e0);
+                        for (i, o) in out.iter_mut().enumerate() {
+                            let t = if m.at(i) != z { ta } else { tb };
+                            *o = match t {
+                                Some(t) => t[i],
+                                None => z,
+                            };
+                        }
+                        true
+                    } else {
+                        false
+                    }
+                }
+                Kind::SumLast(_) => match tan!(0, t0) {
+                    Some(t) => {
+                        sum_rows(out, t, nd.lane);
+                        true
+                    }
+                    None => false,
+                },
+                Kind::SliceLast(a, b) => match tan!(0, t0) {
+                    Some(t) => {
+                        slice_lanes(out, t, nd.lane, (a, b));
+                        true
+                    }
+                    None => false,
+                },
+                Kind::Normalize(eps) => match tan!(0, t0) {
+                    Some(t) => {
+                        normalize_bwd(out, t, at_s(val!(0, e0)), y, nd.lane, eps);
+                        true
+                    }
+                    None => false,
+                },
+            };
+            if set {
+                tat[j] = j as u32;
+            }
+        }
     }
 
     /// Adds a gradient contribution `contrib` (in the node's output layout) to argument
@@ -1268,6 +1735,7 @@ impl<T: Real> FusedOp<T> {
             exp,
             tmp,
             red,
+            ..
         } = s;
         let [e0, e1, e2] = exp;
         for (j, nd) in self.nodes.iter().enumerate().rev() {
@@ -1326,11 +1794,7 @@ impl<T: Real> FusedOp<T> {
                         let t = sized(tmp, n);
                         if dset[j] {
                             // The factor the forward kept: `cos x` of `sin`, `sin x` of `cos`.
-                            let (d, z) = (Opd::S(&derivs[j][..]), Opd::C(T::zero()));
-                            match k {
-                                Unary::Sin => ew3(t, g, d, z, |g, c, _| g * c),
-                                _ => ew3(t, g, d, z, |g, s, _| -g * s),
-                            }
+                            sincos_bwd(k == Unary::Cos, t, g, &derivs[j]);
                         } else {
                             let x = at_s(self.operand(src, acc, n, nd.w, vals, c, e0));
                             unary_bwd(k, t, g, x, y);
@@ -1355,10 +1819,7 @@ impl<T: Real> FusedOp<T> {
                     if wants(src) {
                         let x = self.operand(src, acc, n, nd.w, vals, c, e0);
                         let t = sized(tmp, n);
-                        ew3(t, g, x, Opd::C(T::zero()), |g, x, _| {
-                            let t = g * x;
-                            t + t
-                        });
+                        mulself_bwd(t, g, x);
                         give!(src, acc, t);
                     }
                 }
@@ -1403,28 +1864,8 @@ impl<T: Real> FusedOp<T> {
                     let (src, acc) = (nd.args[0].0, &nd.args[0].1);
                     if wants(src) {
                         let x = at_s(self.operand(src, acc, n, nd.w, vals, c, e2));
-                        let k = nd.lane;
                         let t = sized(tmp, n);
-                        with_lane!(k, {
-                            for (((o, x), y), g) in t
-                                .chunks_exact_mut(k)
-                                .zip(x.chunks_exact(k))
-                                .zip(y.chunks_exact(k))
-                                .zip(g.chunks_exact(k))
-                            {
-                                let len = x.iter().map(|&v| v * v).sum::<T>().sqrt();
-                                if len > eps {
-                                    let yg: T = y.iter().zip(g.iter()).map(|(&a, &b)| a * b).sum();
-                                    for ((o, &yv), &gv) in o.iter_mut().zip(y).zip(g) {
-                                        *o = (gv - yv * yg) / len;
-                                    }
-                                } else {
-                                    for (o, &gv) in o.iter_mut().zip(g) {
-                                        *o = gv / eps;
-                                    }
-                                }
-                            }
-                        });
+                        normalize_bwd(t, g, x, y, nd.lane, eps);
                         give!(src, acc, t);
                     }
                 }
@@ -1454,7 +1895,12 @@ impl<T: Real> FusedOp<T> {
             .iter()
             .map(|n| if n.row { n.w * self.n_rows } else { n.w })
             .sum();
-        let make = || Scratch::new(self.nodes.len(), self.ext.len());
+        let channels = self
+            .preacc
+            .as_ref()
+            .filter(|p| p.tangents)
+            .map_or(0, |p| p.inputs.len());
+        let make = || Scratch::new(self.nodes.len(), self.ext.len(), channels);
         if nc > 1 && work >= PAR_MIN_LEN {
             (0..nc)
                 .into_par_iter()
@@ -1554,7 +2000,7 @@ macro_rules! multiversion {
     };
 }
 
-multiversion!(forward_chunk, eval_forward, (c: &Chunk<'_, T>, s: &mut Scratch<T>, keep: bool) -> Option<usize>);
+multiversion!(forward_chunk, eval_forward, (c: &Chunk<'_, T>, s: &mut Scratch<T>, keep: Keep) -> Option<usize>);
 multiversion!(backward_chunk, eval_backward, (c: &Chunk<'_, T>, s: &mut Scratch<T>, needs: &[bool]) -> Option<usize>);
 
 impl<T: Real> Op<T> for FusedOp<T> {
@@ -1588,7 +2034,12 @@ impl<T: Real> Op<T> for FusedOp<T> {
             .collect();
         let bad = this.over_chunks(|i, s| {
             let c = this.chunk(i, &ext);
-            let bad = forward_chunk(this, &c, s, n_out > 0);
+            let keep = match &this.preacc {
+                Some(p) if p.tangents => Keep::Tangents,
+                Some(_) => Keep::Derivs,
+                None => Keep::Values,
+            };
+            let bad = forward_chunk(this, &c, s, keep);
             for (&j, p) in this.out_nodes.iter().zip(&ptrs) {
                 let nd = &this.nodes[j];
                 let at = if nd.row { c.r0 * nd.w } else { 0 };
@@ -1670,19 +2121,36 @@ impl<T: Real> FusedOp<T> {
         jptrs: &[Option<SyncPtr<T>>],
     ) {
         let (n_out, rows) = (p.channels.len(), c.r1 - c.r0);
+        if p.tangents {
+            // The forward left `d out / d in` in the tangents: entry (row, output channel,
+            // input channel) is lane `ch.lane` of the output node's tangent for channel `q`.
+            for (o, ch) in p.channels.iter().enumerate() {
+                for (q, &(k, lane)) in p.inputs.iter().enumerate() {
+                    let ptr = jptrs[k].expect("a Jacobian for every input channel");
+                    let w = self.ext[k].w;
+                    let at = s.tat[q][ch.node];
+                    let t = (at != ZERO).then(|| &s.tans[q][at as usize][..rows * ch.w]);
+                    match t {
+                        // SAFETY: this chunk's rows of the Jacobian, written by this chunk only.
+                        Some(t) if n_out == 1 && w == 1 && ch.w == 1 => unsafe {
+                            ptr.write(c.r0, t)
+                        },
+                        _ => {
+                            for r in 0..rows {
+                                let v = t.map_or(T::zero(), |t| t[r * ch.w + ch.lane]);
+                                // SAFETY: as above, entry (r0 + r, o, lane).
+                                unsafe { ptr.write(((c.r0 + r) * n_out + o) * w + lane, &[v]) };
+                            }
+                        }
+                    }
+                }
+            }
+            return;
+        }
         for (o, ch) in p.channels.iter().enumerate() {
             s.gset.iter_mut().for_each(|f| *f = false);
             s.eset.iter_mut().for_each(|f| *f = false);
-            let seed = sized(&mut s.grads[ch.node], rows * ch.w);
-            if ch.w == 1 {
-                seed.fill(T::one());
-            } else {
-                seed.fill(T::zero());
-                seed[ch.lane..]
-                    .iter_mut()
-                    .step_by(ch.w)
-                    .for_each(|v| *v = T::one());
-            }
+            unit_seed(&mut s.grads[ch.node], rows, ch.w, ch.lane);
             s.gset[ch.node] = true;
             backward_chunk(self, c, s, &p.needs);
             for (k, ptr) in jptrs.iter().enumerate() {
@@ -1783,7 +2251,7 @@ impl<T: Real> FusedOp<T> {
             .collect();
         let results = self.over_chunks(|i, s| {
             let c = self.chunk(i, &ext);
-            forward_chunk(self, &c, s, true);
+            forward_chunk(self, &c, s, Keep::Derivs);
             s.gset.iter_mut().for_each(|f| *f = false);
             s.eset.iter_mut().for_each(|f| *f = false);
             for (&j, g) in self.out_nodes.iter().zip(&gouts) {
@@ -1865,4 +2333,53 @@ impl<T: Real> FusedOp<T> {
 
 fn flat_refs<'a, T: Real>(ts: &[&'a Tensor<T>]) -> Vec<Cow<'a, [T]>> {
     ts.iter().map(|t| flat_one(*t)).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    /// The one-loop value and tangent of the polynomial unary ops give the bits of the value
+    /// pass followed by the tangent pass (`unary_fwd`, then `unary_bwd`), in `f32` (the fast
+    /// kernels, with arguments outside their range and NaN, which take libm) and `f64`.
+    #[test]
+    fn value_and_tangent_in_one_loop_equal_two_passes() {
+        fn check<T: Real>() {
+            let mut x: Vec<T> = Rng::new(1).normal_tensor(&[999]).iter().copied().collect();
+            for (i, v) in [1e5, f64::NAN, -100.0, 100.0, 0.0, -0.0]
+                .into_iter()
+                .enumerate()
+            {
+                x[3 + i] = T::from_f64c(v);
+            }
+            x.iter_mut().skip(20).for_each(|v| *v *= T::from_f64c(6.0));
+            let t: Vec<T> = Rng::new(2).normal_tensor(&[999]).iter().copied().collect();
+            let same = |a: &[T], b: &[T]| {
+                a.iter().zip(b).all(|(&u, &v)| {
+                    u.to_f64c().to_bits() == v.to_f64c().to_bits() || (u.is_nan() && v.is_nan())
+                })
+            };
+            let n = x.len();
+            for k in [
+                Unary::Sin,
+                Unary::Cos,
+                Unary::Tanh,
+                Unary::Exp,
+                Unary::Sigmoid,
+            ] {
+                let (mut o, mut to) = (vec![T::zero(); n], vec![T::zero(); n]);
+                assert!(unary_fwd_tangent(k, (&mut o, &mut to), &x, &t));
+                let (mut y, mut ty) = (vec![T::zero(); n], vec![T::zero(); n]);
+                unary_fwd(k, &mut y, &x);
+                unary_bwd(k, &mut ty, &t, &x, &y);
+                assert!(same(&o, &y), "{} {k:?} value", T::NAME);
+                assert!(same(&to, &ty), "{} {k:?} tangent", T::NAME);
+            }
+            let (mut o, mut to) = (vec![T::zero(); n], vec![T::zero(); n]);
+            assert!(!unary_fwd_tangent(Unary::Log, (&mut o, &mut to), &x, &t));
+        }
+        check::<f32>();
+        check::<f64>();
+    }
 }

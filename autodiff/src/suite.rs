@@ -814,6 +814,23 @@ pub fn builtin_cases() -> Vec<Case> {
                 crate::fused::FusedBackward::Preaccumulate,
             )
         }),
+        case!(
+            "fused/preaccumulate_forward",
+            [[5, 3], [5, 1]],
+            [U, POS],
+            |t, x| {
+                let light = t.constant(
+                    crate::tensor::from_vec(&[3], vec![c(0.3), c(-0.6), c(0.9)]).unwrap(),
+                );
+                fused_case(
+                    t,
+                    x[0],
+                    x[1],
+                    light,
+                    crate::fused::FusedBackward::PreaccumulateForward,
+                )
+            }
+        ),
     ]
 }
 

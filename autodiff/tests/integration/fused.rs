@@ -296,11 +296,12 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
 
     /// Random graphs with the row-invariant inputs as constants, every fused op preaccumulated
-    /// (up to 3 outputs of up to 3 channels: several sweeps per chunk): values equal eager's
-    /// bit for bit. Gradients differ from eager's by the rounding of `g * (d_L * ... * d_1)`
-    /// against eager's `((g * d_L) * ...) * d_1` along each path and of `sum_o g_o J_o`
-    /// against eager's one sweep: a few ulp of the largest adjoint inside the graph, which
-    /// `normalize` near a zero vector makes up to `1 / eps` = 1e3 times `|g|` (its gradient
+    /// (up to 3 outputs of up to 3 channels: several sweeps per chunk), by forward tangents and
+    /// by reverse sweeps: values equal eager's bit for bit. Gradients differ from eager's by
+    /// the rounding of `g * (d_L * ... * d_1)` (in either order) against eager's
+    /// `((g * d_L) * ...) * d_1` along each path and of the sums where paths join against
+    /// eager's one sweep: a few ulp of the largest adjoint inside the graph, which `normalize`
+    /// near a zero vector makes up to `1 / eps` = 1e3 times `|g|` (its gradient
     /// `g / max(len, eps)` and the projection that cancels it). Held to `16 u / eps` of
     /// `1 + |g|` (`u` the unit roundoff).
     #[test]
@@ -308,19 +309,20 @@ proptest! {
         prog in prop::collection::vec(step(), 1..14),
         seed in 0u64..1000,
     ) {
-        let pre = FusedBackward::Preaccumulate;
-        let x64 = inputs::<f64>(seed);
-        compare_preaccumulated(
-            &run_with(&x64, &prog, true, 1024, pre, true),
-            &run_with(&x64, &prog, false, 1024, pre, true),
-            16.0 * f64::EPSILON / 2.0 * 1e3,
-        );
-        let x32 = inputs::<f32>(seed);
-        compare_preaccumulated(
-            &run_with(&x32, &prog, true, 1024, pre, true),
-            &run_with(&x32, &prog, false, 1024, pre, true),
-            16.0 * f64::from(f32::EPSILON) / 2.0 * 1e3,
-        );
+        for pre in [FusedBackward::PreaccumulateForward, FusedBackward::PreaccumulateReverse] {
+            let x64 = inputs::<f64>(seed);
+            compare_preaccumulated(
+                &run_with(&x64, &prog, true, 1024, pre, true),
+                &run_with(&x64, &prog, false, 1024, pre, true),
+                16.0 * f64::EPSILON / 2.0 * 1e3,
+            );
+            let x32 = inputs::<f32>(seed);
+            compare_preaccumulated(
+                &run_with(&x32, &prog, true, 1024, pre, true),
+                &run_with(&x32, &prog, false, 1024, pre, true),
+                16.0 * f64::from(f32::EPSILON) / 2.0 * 1e3,
+            );
+        }
     }
 }
 
@@ -384,13 +386,16 @@ fn chain50<'t, T: Real>(x: Var<'t, T>) -> Var<'t, T> {
 }
 
 /// The 50-op chain of the benchmark, 1-D (one element per row), bit for bit in f32 (the
-/// vectorised sin/tanh kernels) and f64.
+/// vectorised sin/tanh kernels) and f64, with the backward that recomputes and sweeps in
+/// reverse as eager does (the default preaccumulates in forward mode: values bit for bit,
+/// gradients within the bound of the next test).
 #[test]
 fn chain_is_bit_identical() {
     fn go<T: Real>(fused: bool) -> (Vec<u64>, Vec<u64>) {
         let mut x0: Tensor<T> = Rng::new(3).normal_tensor(&[70_001]);
         x0[[5]] = T::from_f64c(1e5); // outside the f32 polynomial range
         let tape = Tape::<T>::new();
+        tape.set_fused_backward(FusedBackward::Recompute);
         let x = tape.leaf(x0);
         let y = if fused {
             tape.fused(|| chain50(x))
@@ -409,10 +414,11 @@ fn chain_is_bit_identical() {
     assert_eq!(go::<f64>(true), go::<f64>(false));
 }
 
-/// The chain with a random output gradient `g` (the default strategy preaccumulates it): the
-/// values bit for bit; the gradient `g * (d_50 * ... * d_1)` against eager's
-/// `((g * d_50) * ...) * d_1` with the same factors `d_k`: each within `(1 + u)^51` of the
-/// exact product, so within `102 u` of eager's relative to it (u the unit roundoff).
+/// The chain with a random output gradient `g` (the default strategy preaccumulates it, in
+/// forward mode for one input and one output channel): the values bit for bit; the gradient
+/// `g * ((d_1 * d_2) * ... * d_50)` against eager's `((g * d_50) * ...) * d_1` with the same
+/// factors `d_k`: each within `(1 + u)^51` of the exact product, so within `102 u` of eager's
+/// relative to it (u the unit roundoff).
 #[test]
 fn chain_with_any_output_gradient_is_within_the_bound() {
     fn go<T: Real>(fused: bool) -> (Vec<u64>, Vec<f64>) {
@@ -514,25 +520,32 @@ fn all_bits<T: Real>(r: &Run<T>) -> (Vec<Vec<u64>>, Vec<Vec<u64>>) {
 }
 
 /// Preaccumulated fused ops (the shader graph with constant broadcast inputs: five output
-/// channels) give the same bits with 1, 2 and 3 threads and with every chunk size (each row's
-/// Jacobian comes from its own elements), and the values and gradients of a single-channel op
-/// equal eager's bit for bit when the output gradient is 1 (`sum`).
+/// channels), by forward tangents and by reverse sweeps, give the same bits with 1, 2 and 3
+/// threads and with every chunk size (each row's Jacobian comes from its own elements), and
+/// the values and gradients of a single-channel op swept in reverse equal eager's bit for bit
+/// when the output gradient is 1 (`sum`).
 #[test]
 fn preaccumulated_is_deterministic_across_threads_and_chunk_sizes() {
     let prog = shader_prog();
     let x = inputs::<f32>(4);
-    let pre = FusedBackward::Preaccumulate;
-    let go = |n: usize, chunk: usize| in_pool(n, || run_with(&x, &prog, true, chunk, pre, true));
-    let reference = all_bits(&go(1, 1024));
-    for chunk in [1, 7, 1024, 1 << 20] {
-        for n in [1, 2, 3] {
-            let got = all_bits(&go(n, chunk));
-            assert_eq!(got, reference, "{n} threads, chunk {chunk}");
+    for pre in [
+        FusedBackward::PreaccumulateForward,
+        FusedBackward::PreaccumulateReverse,
+    ] {
+        let go =
+            |n: usize, chunk: usize| in_pool(n, || run_with(&x, &prog, true, chunk, pre, true));
+        let reference = all_bits(&go(1, 1024));
+        for chunk in [1, 7, 1024, 1 << 20] {
+            for n in [1, 2, 3] {
+                let got = all_bits(&go(n, chunk));
+                assert_eq!(got, reference, "{pre:?}: {n} threads, chunk {chunk}");
+            }
         }
     }
     // One output channel, seed 1: eager's sweep, bit for bit.
     let go = |fused: bool| {
         let tape = Tape::<f32>::new();
+        tape.set_fused_backward(FusedBackward::PreaccumulateReverse);
         let a = tape.leaf(x[0].clone());
         let b = tape.leaf(x[1].clone());
         let body = || ((a * b).sin().sum_axes(&[-1], false) * 1.5).tanh();
