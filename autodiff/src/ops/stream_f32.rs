@@ -158,6 +158,15 @@ mod avx512 {
         }
     }
 
+    /// The upper 8 lanes (`_mm512_extractf32x8_ps` needs AVX-512DQ, which the kernels are not
+    /// compiled for: it would be a call per row; the 64-bit extract of AVX-512F moves the same
+    /// bits).
+    #[inline(always)]
+    fn upper(z: __m512) -> __m256 {
+        // SAFETY (callers): compiled with AVX-512F.
+        unsafe { _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(z))) }
+    }
+
     /// The first `n` of 16 lanes.
     #[inline(always)]
     fn first(n: usize) -> __mmask16 {
@@ -211,8 +220,8 @@ mod avx512 {
                 let pt = p.add(8 * full).wrapping_sub(8);
                 z1 = _mm512_mask3_fmadd_ps(_mm512_maskz_loadu_ps(mt, pt), xt, z1, mt);
                 // (a0 + a1) + (a2 + a3), then the AVX2 kernel's horizontal sum.
-                let lo = _mm256_add_ps(_mm512_castps512_ps256(z0), _mm512_extractf32x8_ps::<1>(z0));
-                let hi = _mm256_add_ps(_mm512_castps512_ps256(z1), _mm512_extractf32x8_ps::<1>(z1));
+                let lo = _mm256_add_ps(_mm512_castps512_ps256(z0), upper(z0));
+                let hi = _mm256_add_ps(_mm512_castps512_ps256(z1), upper(z1));
                 *y = super::avx2::hsum(_mm256_add_ps(lo, hi));
             }
         }
