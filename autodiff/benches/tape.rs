@@ -26,8 +26,8 @@
 //!     directly (two parallel summing passes over B, AVX2 where available).
 //!
 //! The parallel cases (b, c) run each iteration inside a rayon pool with its idle workers
-//! polling (`Frames`), as a fitting loop does and as PyTorch's OpenMP regions start on the
-//! calling thread; the bounds are measured the same way.
+//! polling (`Frames`), as the render benches' frames run and as PyTorch's OpenMP regions start
+//! on the calling thread; the bounds are measured the same way.
 
 use std::hint::black_box;
 use std::sync::Arc;
@@ -41,8 +41,8 @@ use rayon::prelude::*;
 
 const SCALAR_OPS: usize = 10_000;
 
-/// Runs each timed iteration of the parallel cases as an application's fitting loop runs a
-/// step: on a worker of a rayon pool (`RAYON_NUM_THREADS` threads), so that a step's parallel
+/// Runs each timed iteration of the parallel cases as the render benches run a frame: on a
+/// worker of a rayon pool (`RAYON_NUM_THREADS` threads), so that a step's parallel
 /// regions start on the calling thread, as an OpenMP region does on PyTorch's, instead of being
 /// handed from the main thread to the pool and back (two thread wake-ups per region), with the
 /// pool's other workers polling for work meanwhile (`autodiff::ActiveWait`, as in the render
