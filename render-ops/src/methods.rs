@@ -17,8 +17,10 @@
 //! method only here. To add a method: a [`Method`] variant (scene.rs), its [`MethodInfo`] in
 //! [`Method::info`], and its arms in the two entry points.
 //!
-//! Every raster method composes with any shader (a new one must give both entry points); the
-//! ray tracer shades its own samples for now, and `render_fragments` refuses it with a typed error.
+//! Every method composes with any shader (a new one must give both entry points). The ray
+//! tracer composes through its fragment stages ([`crate::raytrace::stage`]: primary visibility
+//! and its edge terms; the shader's lights are unshadowed); its fused op, with shadows, is the
+//! built-in shading's path.
 
 use std::sync::Arc;
 
@@ -32,7 +34,7 @@ use crate::error::RenderError;
 use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
 use crate::rasterize::{rasterize, render_attributes, Rasterized};
-use crate::raytrace::{raytrace, RaytraceSettings};
+use crate::raytrace::{blend_traced, raytrace, raytrace_fragments, RaytraceSettings};
 use crate::scene::{Method, Raster};
 use crate::soft::{
     self, Coverage, DibrSettings, SoftBlendSettings, SoftSettings, SoftStageSettings,
@@ -448,6 +450,10 @@ pub type FragmentShader<'a, 't, T> =
 ///   DIB-R's soft silhouette ([`soft::dibr_alpha`]) as its alpha, as the fused path does.
 /// * `analytic`: [`analytic_fragments`] (every visible face part of each pixel, its area and
 ///   its values at the area centroid), the shader on those fragments, [`blend_weighted`].
+/// * `raytrace`: [`raytrace_fragments`] (one fragment per pixel sample that hits, and the
+///   side points of the primary-edge samples as a band), the shader on both, and
+///   [`blend_traced`] (the box filter, with the edge terms in its backward). Lights in the
+///   shader are unshadowed.
 ///
 /// # Errors
 /// The ops' and the shader's errors.
@@ -489,11 +495,15 @@ pub fn render_fragments<'t, T: Real>(
             let (image, r) = hard(shader)?;
             boundary::deodr_antialias(image, &r, clip, &s.boundary())
         }
-        Method::Raytrace => Err(RenderError::Unsupported(
-            "raytrace shades its own samples (built-in shading: Scene::render, \
-             raytrace::raytrace); per-fragment shaders are not composed with it yet"
-                .into(),
-        )),
+        Method::Raytrace => {
+            let t = raytrace_fragments(clip, faces, &s.raytrace())?;
+            let col = shader(&t.raster)?;
+            let band = shader(&t.band)?;
+            let bg = s
+                .view
+                .background_of(col.shape().get(1).copied().unwrap_or(0));
+            blend_traced(col, band, &t, clip, &bg)
+        }
         Method::Analytic => {
             let a = analytic_fragments(clip, faces, &s.raster())?;
             let col = shader(&a.raster)?;

@@ -492,19 +492,33 @@ impl<T: Real> Scene<T> {
     }
 
     /// Ray-traced render ([`crate::raytrace`]): albedo `kd` times the vertex colours,
-    /// area-weighted vertex normals, the scene's lights (or `vars.lights`) with shadows.
-    /// Textures are not supported yet (`Unsupported`).
+    /// area-weighted vertex normals, the scene's lights (or `vars.lights`) with shadows. A
+    /// textured scene goes through the fragment stages ([`crate::raytrace::stage`]) with the
+    /// scene's shader, whose lights are unshadowed: it may have ambient and SH lights (which the
+    /// ray tracer never shadows), and a directional, point or area light is `Unsupported`.
     fn render_raytrace<'t>(
         &self,
         vars: &SceneVars<'t, T>,
         clip: Var<'t, T>,
         kd: Var<'t, T>,
-        _s: &MethodSettings,
+        s: &MethodSettings,
     ) -> Result<Var<'t, T>, RenderError> {
         if vars.texture.is_some() {
-            return Err(RenderError::Unsupported(
-                "raster.method 'raytrace' does not sample textures yet (use vertex colours)".into(),
-            ));
+            let casts = |l: &Light| {
+                matches!(
+                    l,
+                    Light::Directional { .. } | Light::Point { .. } | Light::Area { .. }
+                )
+            };
+            if self.desc.lights.iter().any(casts) {
+                return Err(RenderError::Unsupported(
+                    "raster.method 'raytrace' shades a textured scene through the fragment \
+                     stages, whose lights are unshadowed: use ambient or SH lights, or vertex \
+                     colours for directional, point and area lights with shadows"
+                        .into(),
+                ));
+            }
+            return self.render_shaded(vars, clip, kd, s);
         }
         let t = vars.positions.tape();
         let faces = Arc::new(self.mesh.faces.clone());

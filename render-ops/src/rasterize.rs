@@ -10,7 +10,7 @@ use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
 
 use crate::error::RenderError;
-use crate::raster::{rasterize_backward, Fragments, RasterSettings};
+use crate::raster::{rasterize_backward_at, Fragments, RasterSettings};
 
 /// Fragments of one rasterization as tape variables plus their fixed layout.
 pub struct Rasterized<'t, T: Real> {
@@ -54,6 +54,8 @@ struct RasterizeOp<T: Real> {
     fragments: Arc<Fragments<T>>,
     faces: Arc<Vec<[u32; 3]>>,
     settings: RasterSettings,
+    /// Each fragment's NDC point, where it is not its pixel centre ([`record_at`]).
+    points: Option<Vec<[f64; 2]>>,
 }
 
 impl<T: Real> Op<T> for RasterizeOp<T> {
@@ -61,17 +63,7 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
         "rasterize"
     }
     fn forward(&mut self, _inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
-        let f = &self.fragments;
-        let n = f.face.len();
-        // The three copies in one parallel region (they are the op's only work).
-        let (bary, (depth, vdepth)) = rayon::join(
-            || par_copy(f.bary.as_flattened()),
-            || rayon::join(|| par_copy(&f.depth), || par_copy(&f.view_depth)),
-        );
-        let bary = ArrayD::from_shape_vec(IxDyn(&[n, 3]), bary).expect("n x 3");
-        let depth = ArrayD::from_shape_vec(IxDyn(&[n]), depth).expect("n");
-        let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), vdepth).expect("n");
-        Ok(vec![bary, depth, vdepth])
+        Ok(fragment_values(&self.fragments))
     }
     fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
@@ -88,7 +80,7 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
         let gd = gd.as_slice().expect("standard");
         let gv = gv.as_slice().expect("standard");
         let any = |s: &[T]| s.iter().any(|v| *v != T::zero());
-        let g = rasterize_backward(
+        let g = rasterize_backward_at(
             &clip,
             &self.faces,
             &self.fragments,
@@ -96,6 +88,7 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
             any(gd).then_some(gd),
             any(gv).then_some(gv),
             &self.settings,
+            self.points.as_deref(),
         )
         .map_err(|e| AutodiffError::Op {
             op: "rasterize",
@@ -107,6 +100,21 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
                 .expect("v x 4"),
         )])
     }
+}
+
+/// A rasterization's barycentrics `[N, 3]`, NDC depth `[N]` and view depth `[N]` as tensors
+/// (the outputs of a stage that yields fragments).
+fn fragment_values<T: Real>(f: &Fragments<T>) -> Vec<Tensor<T>> {
+    let n = f.face.len();
+    // The three copies in one parallel region (they are the op's only work).
+    let (bary, (depth, vdepth)) = rayon::join(
+        || par_copy(f.bary.as_flattened()),
+        || rayon::join(|| par_copy(&f.depth), || par_copy(&f.view_depth)),
+    );
+    let bary = ArrayD::from_shape_vec(IxDyn(&[n, 3]), bary).expect("n x 3");
+    let depth = ArrayD::from_shape_vec(IxDyn(&[n]), depth).expect("n");
+    let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), vdepth).expect("n");
+    vec![bary, depth, vdepth]
 }
 
 /// The output gradient `i` of an op's backward as `f64` values in standard order.
@@ -260,10 +268,24 @@ pub(crate) fn record<'t, T: Real>(
     faces: Arc<Vec<[u32; 3]>>,
     settings: &RasterSettings,
 ) -> Rasterized<'t, T> {
+    record_at(clip, fragments, faces, settings, None)
+}
+
+/// [`record`] for fragments whose barycentrics and depths are those of their own NDC point
+/// `points[i]` (perspective-correct; the ray tracer's jittered samples,
+/// [`crate::raytrace::stage`]): their backward takes the same product at that point.
+pub(crate) fn record_at<'t, T: Real>(
+    clip: Var<'t, T>,
+    fragments: Arc<Fragments<T>>,
+    faces: Arc<Vec<[u32; 3]>>,
+    settings: &RasterSettings,
+    points: Option<Vec<[f64; 2]>>,
+) -> Rasterized<'t, T> {
     let op = RasterizeOp {
         fragments: fragments.clone(),
         faces: faces.clone(),
         settings: *settings,
+        points,
     };
     let outs = clip.tape().apply_multi(op, &[clip], 3);
     Rasterized {

@@ -808,6 +808,32 @@ pub fn rasterize_backward<T: Real>(
     grad_view_depth: Option<&[T]>,
     s: &RasterSettings,
 ) -> Result<Vec<[T; 4]>, RasterError> {
+    rasterize_backward_at(
+        clip,
+        faces,
+        frags,
+        grad_bary,
+        grad_depth,
+        grad_view_depth,
+        s,
+        None,
+    )
+}
+
+/// [`rasterize_backward`] with each fragment's barycentrics taken at its own NDC point
+/// `points[i]` instead of its pixel centre (the ray tracer's jittered samples,
+/// [`crate::raytrace::stage`]).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn rasterize_backward_at<T: Real>(
+    clip: &[[T; 4]],
+    faces: &[[u32; 3]],
+    frags: &Fragments<T>,
+    grad_bary: &[[T; 3]],
+    grad_depth: Option<&[T]>,
+    grad_view_depth: Option<&[T]>,
+    s: &RasterSettings,
+    points: Option<&[[f64; 2]]>,
+) -> Result<Vec<[T; 4]>, RasterError> {
     validate_inputs(clip, faces, s)?;
     if frags.width != s.width || frags.height != s.height {
         return Err(RasterError::FragmentsMismatch(format!(
@@ -836,6 +862,9 @@ pub fn rasterize_backward<T: Real>(
         }
     };
     check("grad_bary", grad_bary.len())?;
+    if let Some(p) = points {
+        check("points", p.len())?;
+    }
     if let Some(g) = grad_depth {
         check("grad_depth", g.len())?;
     }
@@ -864,7 +893,10 @@ pub fn rasterize_backward<T: Real>(
                 let mut cur = (u32::MAX, 0usize);
                 for i in i0..i1 {
                     px_at.advance(&frags.offsets, i);
-                    let px = px_at.ndc();
+                    let px = match points {
+                        Some(p) => p[i],
+                        None => px_at.ndc(),
+                    };
                     let fi = frags.face[i];
                     if fi != cur.0 {
                         let (e, new) = sc.face_ix.index(fi);

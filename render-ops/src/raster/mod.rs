@@ -83,6 +83,7 @@ pub(crate) use clip::clip_plane;
 pub use direct::render_attributes_direct;
 pub(crate) use fragments::{per_fragment, PixelCursor};
 pub use fragments::{Fragment, Fragments};
+pub(crate) use hard::rasterize_backward_at;
 pub use hard::{rasterize_backward, rasterize_fragments};
 pub(crate) use hard::{FaceVjp, RunSetup, RunVjp};
 

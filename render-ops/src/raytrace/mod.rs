@@ -62,8 +62,10 @@ pub mod edges;
 pub mod intersect;
 pub mod rng;
 pub mod shading;
+pub mod stage;
 
 mod op;
 
 pub use op::{raytrace, RaytraceSettings};
 pub use shading::{LightKind, Reflection};
+pub use stage::{blend_traced, raytrace_fragments, TracedFragments};

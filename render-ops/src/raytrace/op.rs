@@ -14,7 +14,7 @@ use crate::shade::{acc3, add3, cross3, dot3, scale3, sub3};
 
 use super::bvh::Bvh;
 use super::edges::{face_normal, is_silhouette, mesh_edges, plane_hit, Cdf, Edge, Viewer};
-use super::intersect::{Ray, V3};
+use super::intersect::{Hit, Ray, V3};
 use super::rng::{Counter, Stream};
 use super::shading::{LightKind, LightSet, Reflection, ShadeGrad, Shadow};
 
@@ -88,7 +88,7 @@ impl RaytraceSettings {
         }
     }
 
-    fn validate(&self) -> Result<(), RenderError> {
+    pub(super) fn validate(&self) -> Result<(), RenderError> {
         let bad = |m: String| Err(RenderError::Unsupported(format!("raytrace: {m}")));
         if self.width == 0 || self.height == 0 || self.width * self.height > MAX_PIXELS {
             return bad(format!(
@@ -169,15 +169,7 @@ pub fn raytrace<'t, T: Real>(
         }
         RenderError::check_finite(name, &val.view())?;
     }
-    if let Some((f, tri)) = faces
-        .iter()
-        .enumerate()
-        .find(|(_, t)| t.iter().any(|&i| i as usize >= v))
-    {
-        return Err(RenderError::Unsupported(format!(
-            "raytrace: face {f} {tri:?} indexes past the {v} vertices"
-        )));
-    }
+    check_faces(&faces, v)?;
     let op = RaytraceOp {
         faces,
         s: settings.clone(),
@@ -187,12 +179,26 @@ pub fn raytrace<'t, T: Real>(
         .apply(op, &[clip, world, normals, albedo, lights]))
 }
 
+/// Every face index is below `v`.
+pub(super) fn check_faces(faces: &[[u32; 3]], v: usize) -> Result<(), RenderError> {
+    match faces
+        .iter()
+        .enumerate()
+        .find(|(_, t)| t.iter().any(|&i| i as usize >= v))
+    {
+        Some((f, tri)) => Err(RenderError::Unsupported(format!(
+            "raytrace: face {f} {tri:?} indexes past the {v} vertices"
+        ))),
+        None => Ok(()),
+    }
+}
+
 struct RaytraceOp {
     faces: Arc<Vec<[u32; 3]>>,
     s: RaytraceSettings,
 }
 
-fn rows<T: Real, const N: usize, S: ndarray::Data<Elem = T>>(
+pub(super) fn rows<T: Real, const N: usize, S: ndarray::Data<Elem = T>>(
     t: &ndarray::ArrayBase<S, ndarray::IxDyn>,
 ) -> Vec<[f64; N]> {
     let t = t.as_standard_layout();
@@ -204,9 +210,9 @@ fn rows<T: Real, const N: usize, S: ndarray::Data<Elem = T>>(
 }
 
 /// Everything one evaluation reads, built once per forward or backward.
-struct Scene<'a> {
-    s: &'a RaytraceSettings,
-    faces: &'a [[u32; 3]],
+pub(super) struct Scene<'a> {
+    pub(super) s: &'a RaytraceSettings,
+    pub(super) faces: &'a [[u32; 3]],
     q: Vec<V3>,
     clip: Vec<[f64; 4]>,
     world: Vec<V3>,
@@ -262,37 +268,80 @@ struct Surface {
 
 impl<'a> Scene<'a> {
     fn new<T: Real>(op: &'a RaytraceOp, inputs: &[TensorView<'_, T>]) -> Self {
-        let clip: Vec<[f64; 4]> = rows(&inputs[0]);
+        Scene::build(
+            &op.s,
+            &op.faces,
+            rows(&inputs[0]),
+            rows(&inputs[1]),
+            rows(&inputs[2]),
+            rows(&inputs[3]),
+            rows(&inputs[4]),
+        )
+    }
+
+    /// The primary rays' scene alone (the fragment stage, [`super::stage`]): no shading inputs
+    /// and no lights; the clip coordinates stand in for the world positions, which only weld
+    /// the mesh's edges there.
+    pub(super) fn primary_only(
+        s: &'a RaytraceSettings,
+        faces: &'a [[u32; 3]],
+        clip: Vec<[f64; 4]>,
+    ) -> Self {
+        let world = clip.iter().map(|c| [c[0], c[1], c[2]]).collect();
+        Scene::build(s, faces, clip, world, Vec::new(), Vec::new(), Vec::new())
+    }
+
+    fn build(
+        s: &'a RaytraceSettings,
+        faces: &'a [[u32; 3]],
+        clip: Vec<[f64; 4]>,
+        world: Vec<V3>,
+        normals: Vec<V3>,
+        albedo: Vec<V3>,
+        light_rows: Vec<V3>,
+    ) -> Self {
         let q: Vec<V3> = clip.iter().map(|c| [c[0], c[1], c[3]]).collect();
-        let world: Vec<V3> = rows(&inputs[1]);
-        let s = &op.s;
+        let lit = s.shadows
+            && !light_rows.is_empty()
+            && s.lights.iter().any(|k| {
+                matches!(
+                    k,
+                    LightKind::Directional | LightKind::Point | LightKind::Area
+                )
+            });
         let (primary, shadow) = rayon::join(
-            || Bvh::new(&q, &op.faces),
-            || {
-                let lit = s.shadows
-                    && s.lights.iter().any(|k| {
-                        matches!(
-                            k,
-                            LightKind::Directional | LightKind::Point | LightKind::Area
-                        )
-                    });
-                lit.then(|| Bvh::new(&world, &op.faces))
-            },
+            || Bvh::new(&q, faces),
+            || lit.then(|| Bvh::new(&world, faces)),
         );
         let scale = world.iter().flatten().fold(1.0f64, |m, x| m.max(x.abs()));
         Scene {
             s,
-            faces: &op.faces,
+            faces,
             q,
             clip,
             world,
-            normals: rows(&inputs[2]),
-            albedo: rows(&inputs[3]),
-            light_rows: rows(&inputs[4]),
+            normals,
+            albedo,
+            light_rows,
             primary,
             shadow,
             scale,
         }
+    }
+
+    /// Pixel point and random numbers of sample `k` of pixel `pix`: one jittered point in the
+    /// sample's stratum (`sx x sy` strata per pixel), the counter left at the sample's next
+    /// dimension (the area lights' samples).
+    pub(super) fn sample(&self, pix: usize, k: usize) -> ([f64; 2], Counter) {
+        let (sx, sy) = self.s.strata();
+        let w = self.s.width;
+        let (r, c) = (pix / w, pix % w);
+        let mut ctr = Counter::new(self.s.seed, Stream::Pixel, (pix * self.s.spp + k) as u64);
+        let u = [
+            c as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
+            r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
+        ];
+        (u, ctr)
     }
 
     fn lights(&self) -> LightSet<'_> {
@@ -307,12 +356,18 @@ impl<'a> Scene<'a> {
         ]
     }
 
-    /// The primary hit through pixel point `u`.
-    fn hit(&self, u: [f64; 2]) -> Option<Surface> {
+    /// The nearest face on the primary ray through pixel point `u` (within the clip planes)
+    /// and the ray's direction `(x, y, 1)` in `(clip.x, clip.y, clip.w)` (NDC `x, y`).
+    pub(super) fn primary_hit(&self, u: [f64; 2]) -> Option<(Hit, V3)> {
         let [x, y] = self.ndc(u);
         let dir = [x, y, 1.0];
         let r = Ray::new([0.0; 3], dir);
-        let h = self.primary.closest(&r, self.s.near, self.s.far)?;
+        Some((self.primary.closest(&r, self.s.near, self.s.far)?, dir))
+    }
+
+    /// The primary hit through pixel point `u`.
+    fn hit(&self, u: [f64; 2]) -> Option<Surface> {
+        let (h, dir) = self.primary_hit(u)?;
         let tri = self.faces[h.face as usize];
         let lerp = |a: &[V3]| {
             let mut o = [0.0; 3];
@@ -439,7 +494,7 @@ impl<'a> Scene<'a> {
         (u, d)
     }
 
-    fn pixel(&self, u: [f64; 2]) -> Option<usize> {
+    pub(super) fn pixel(&self, u: [f64; 2]) -> Option<usize> {
         let (c, r) = (u[0].floor(), u[1].floor());
         (c >= 0.0 && r >= 0.0 && (c as usize) < self.s.width && (r as usize) < self.s.height)
             .then(|| r as usize * self.s.width + c as usize)
@@ -449,13 +504,9 @@ impl<'a> Scene<'a> {
     /// `a` (`n` = `perp(a) / |a|`), and the pixel of `u`; `None` off the image.
     fn two_sided(&self, u: [f64; 2], a: [f64; 2], ctr: Counter) -> Option<(usize, [f64; 4])> {
         let p = self.pixel(u)?;
-        let len = (a[0] * a[0] + a[1] * a[1]).sqrt();
-        if !(len > 0.0 && len.is_finite()) {
-            return None;
-        }
-        let n = [-a[1] / len * SIDE_EPS_PX, a[0] / len * SIDE_EPS_PX];
-        let minus = self.radiance([u[0] - n[0], u[1] - n[1]], ctr, None, None);
-        let plus = self.radiance([u[0] + n[0], u[1] + n[1]], ctr, None, None);
+        let [um, up] = side_points(u, a)?;
+        let minus = self.radiance(um, ctr, None, None);
+        let plus = self.radiance(up, ctr, None, None);
         Some((p, std::array::from_fn(|k| minus[k] - plus[k])))
     }
 
@@ -554,8 +605,13 @@ impl<'a> Scene<'a> {
         }
     }
 
-    /// One primary-edge sample (module docs).
-    fn primary_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
+    /// Where primary-edge sample `j` falls (module docs), with its counter (the side
+    /// evaluations' area-light samples); `None` behind the near plane.
+    pub(super) fn primary_edge_point(
+        &self,
+        j: usize,
+        edges: &Edges,
+    ) -> Option<(EdgePoint, Counter)> {
         let mut ctr = Counter::new(self.s.seed, Stream::PrimaryEdge, j as u64);
         let (e, pe) = edges.primary.sample(ctr.uniform());
         // Uniform on the edge's part in front of the near plane (density 1 / (s1 - s0)).
@@ -565,21 +621,36 @@ impl<'a> Scene<'a> {
         let (ca, cb) = (self.clip[edge.v[0] as usize], self.clip[edge.v[1] as usize]);
         let c: [f64; 4] = std::array::from_fn(|k| ca[k] + s * (cb[k] - ca[k]));
         if c[3] <= self.s.near {
-            return;
+            return None;
         }
         let (u, dpi) = self.project(c);
         let dc: [f64; 4] = std::array::from_fn(|k| cb[k] - ca[k]);
         let a = [dot4(dpi[0], dc), dot4(dpi[1], dc)];
-        let Some((p, delta)) = self.two_sided(u, a, ctr) else {
+        let point = EdgePoint {
+            v: edge.v,
+            s,
+            u,
+            a,
+            dpi,
+            weight: (s1 - s0) / (self.s.primary_edge_samples as f64 * pe),
+        };
+        Some((point, ctr))
+    }
+
+    /// One primary-edge sample (module docs).
+    fn primary_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
+        let Some((ep, ctr)) = self.primary_edge_point(j, edges) else {
             return;
         };
-        let scal = dot4(gimg[p], delta) * (s1 - s0) / (self.s.primary_edge_samples as f64 * pe);
-        if scal == 0.0 || acc.clip.is_empty() {
+        let Some((p, delta)) = self.two_sided(ep.u, ep.a, ctr) else {
+            return;
+        };
+        if acc.clip.is_empty() {
             return;
         }
-        let z4: [f64; 4] = std::array::from_fn(|k| scal * (a[0] * dpi[1][k] - a[1] * dpi[0][k]));
-        add_to(&mut acc.clip, edge.v[0] as usize, z4.map(|x| x * (1.0 - s)));
-        add_to(&mut acc.clip, edge.v[1] as usize, z4.map(|x| x * s));
+        let g = ep.clip_grads(dot4(gimg[p], delta));
+        add_to(&mut acc.clip, ep.v[0] as usize, g[0]);
+        add_to(&mut acc.clip, ep.v[1] as usize, g[1]);
     }
 
     /// One shadow-edge sample of a point or directional light (module docs).
@@ -667,6 +738,45 @@ impl<'a> Scene<'a> {
     }
 }
 
+/// The image points `u -+ eps n` on the two sides of an edge through `u` with image tangent
+/// `a` (`n = perp(a) / |a|`), minus side first; `None` for a degenerate tangent.
+pub(super) fn side_points(u: [f64; 2], a: [f64; 2]) -> Option<[[f64; 2]; 2]> {
+    let len = (a[0] * a[0] + a[1] * a[1]).sqrt();
+    if !(len > 0.0 && len.is_finite()) {
+        return None;
+    }
+    let n = [-a[1] / len * SIDE_EPS_PX, a[0] / len * SIDE_EPS_PX];
+    Some([[u[0] - n[0], u[1] - n[1]], [u[0] + n[0], u[1] + n[1]]])
+}
+
+/// A primary-edge sample: the point `v0 + s (v1 - v0)` of the edge between vertices `v`, seen
+/// at image point `u` with image tangent `a` and `d u / d clip` rows `dpi`; `weight` is the
+/// estimator's `1 / (N p(edge) p(s))`.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct EdgePoint {
+    pub v: [u32; 2],
+    pub s: f64,
+    pub u: [f64; 2],
+    pub a: [f64; 2],
+    pub dpi: [[f64; 4]; 2],
+    pub weight: f64,
+}
+
+impl EdgePoint {
+    /// The gradients of the clip positions of `v[0]` and `v[1]` for a two-sided difference
+    /// whose product with the output gradient is `g_delta` (Li et al. 2018, eq. 7: the
+    /// difference times the normal velocity `cross(a, d u / d theta)`, in pixel units).
+    pub fn clip_grads(&self, g_delta: f64) -> [[f64; 4]; 2] {
+        let scal = g_delta * self.weight;
+        if scal == 0.0 {
+            return [[0.0; 4]; 2];
+        }
+        let (a, dpi) = (self.a, self.dpi);
+        let z4: [f64; 4] = std::array::from_fn(|k| scal * (a[0] * dpi[1][k] - a[1] * dpi[0][k]));
+        [z4.map(|x| x * (1.0 - self.s)), z4.map(|x| x * self.s)]
+    }
+}
+
 /// The part `[s0, s1]` of the clip-space segment from `a` to `b` in front of the near plane
 /// (`w > near`); `None` when no part is.
 fn near_part(a: [f64; 4], b: [f64; 4], near: f64) -> Option<[f64; 2]> {
@@ -703,11 +813,11 @@ pub(crate) fn bary_vjp(q: [V3; 3], d: V3, b: V3, gb: V3) -> [V3; 3] {
 }
 
 /// The edge tables of one backward.
-struct Edges {
+pub(super) struct Edges {
     list: Vec<Edge>,
     /// Silhouette and boundary edges seen from the camera, by the projected length (pixels)
     /// of their part in front of the near plane.
-    primary: Cdf,
+    pub(super) primary: Cdf,
     /// That part `[s0, s1]` of each edge (edge points `v0 + s (v1 - v0)`).
     primary_part: Vec<[f64; 2]>,
     /// (light, edge) pairs of point and directional lights, silhouettes seen from the light,
@@ -746,7 +856,7 @@ fn casts_shadow(bvh: &Bvh, e: &Edge, p: V3, quad: &[V3]) -> bool {
 }
 
 impl Edges {
-    fn new(sc: &Scene<'_>) -> Self {
+    pub(super) fn new(sc: &Scene<'_>) -> Self {
         let list = mesh_edges(&sc.world, sc.faces);
         let near = sc.s.near;
         let mut primary_part = vec![[0.0; 2]; list.len()];
@@ -837,18 +947,13 @@ impl<T: Real> Op<T> for RaytraceOp {
     fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let sc = Scene::new(self, inputs);
         let (w, h, spp) = (self.s.width, self.s.height, self.s.spp);
-        let (sx, sy) = self.s.strata();
         let mut img = vec![T::zero(); h * w * 4];
         img.par_chunks_mut(w * 4).enumerate().for_each(|(r, row)| {
             for c in 0..w {
                 let pix = r * w + c;
                 let mut sum = [0.0; 4];
                 for k in 0..spp {
-                    let mut ctr = Counter::new(self.s.seed, Stream::Pixel, (pix * spp + k) as u64);
-                    let u = [
-                        c as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
-                        r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
-                    ];
+                    let (u, ctr) = sc.sample(pix, k);
                     let v = sc.radiance(u, ctr, None, None);
                     for ch in 0..4 {
                         sum[ch] += v[ch];
@@ -873,7 +978,6 @@ impl<T: Real> Op<T> for RaytraceOp {
         let gimg: Vec<[f64; 4]> = rows(ctx.grad_outputs[0]);
         let edges = Edges::new(&sc);
         let (w, h, spp) = (self.s.width, self.s.height, self.s.spp);
-        let (sx, sy) = self.s.strata();
         let v = sc.q.len();
         let n_rows = sc.light_rows.len();
         let chunks = chunk_count(h, v, n_rows);
@@ -896,11 +1000,7 @@ impl<T: Real> Op<T> for RaytraceOp {
                         }
                         for k in 0..spp {
                             let index = (pix * spp + k) as u64;
-                            let mut ctr = Counter::new(self.s.seed, Stream::Pixel, index);
-                            let u = [
-                                col as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
-                                r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
-                            ];
+                            let (u, ctr) = sc.sample(pix, k);
                             let ae = area_edges.then_some((&edges, index));
                             sc.radiance(u, ctr, Some((g, &mut acc)), ae);
                         }

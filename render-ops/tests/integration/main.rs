@@ -13,6 +13,7 @@ mod large;
 mod nmr;
 mod proptest_robust;
 mod raytrace;
+mod raytrace_stage;
 mod shader_fused;
 mod shading;
 mod shading_scene;
