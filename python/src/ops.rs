@@ -481,6 +481,7 @@ fn rasterized<'t, T: FragmentsOf>(
         bary,
         depth: empty(),
         view_depth: empty(),
+        visibility: None,
     }
 }
 
@@ -781,6 +782,7 @@ fn phong_build<T: Real>(model: Reflectance) -> Box<Build<T>> {
             position: v[0],
             normal: v[1],
             albedo: v[2],
+            visibility: None,
         };
         let lights = Lights {
             ambient: vec![AmbientLight { color: v[4] }],

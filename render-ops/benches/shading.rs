@@ -87,6 +87,7 @@ fn phong<'t>(tape: &'t Tape<f32>, d: &Data, path: Path) -> (Var<'t, f32>, Vec<Va
         position: pos,
         normal: nrm,
         albedo: alb,
+        visibility: None,
     };
     let y = match path {
         Path::Fused => shade(&surf, &m, &lights, eye),

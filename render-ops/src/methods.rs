@@ -18,9 +18,9 @@
 //! [`Method::info`], and its arms in the two entry points.
 //!
 //! Every method composes with any shader (a new one must give both entry points). The ray
-//! tracer composes through its fragment stages ([`crate::raytrace::stage`]: primary visibility
-//! and its edge terms; the shader's lights are unshadowed); its fused op, with shadows, is the
-//! built-in shading's path.
+//! tracer composes through its fragment stages ([`crate::raytrace::stage`]: visibility, light
+//! visibility by shadow rays with [`render_fragments_lit`], and the edge terms); its fused op
+//! is the built-in shading's path for vertex colours.
 
 use std::sync::Arc;
 
@@ -34,7 +34,7 @@ use crate::error::RenderError;
 use crate::interpolate::interpolate;
 use crate::raster::RasterSettings;
 use crate::rasterize::{rasterize, render_attributes, Rasterized};
-use crate::raytrace::{blend_traced, raytrace, raytrace_fragments, RaytraceSettings};
+use crate::raytrace::{blend_traced, raytrace, raytrace_fragments, RaytraceSettings, ShadowInputs};
 use crate::scene::{Method, Raster};
 use crate::soft::{
     self, Coverage, DibrSettings, SoftBlendSettings, SoftSettings, SoftStageSettings,
@@ -451,9 +451,9 @@ pub type FragmentShader<'a, 't, T> =
 /// * `analytic`: [`analytic_fragments`] (every visible face part of each pixel, its area and
 ///   its values at the area centroid), the shader on those fragments, [`blend_weighted`].
 /// * `raytrace`: [`raytrace_fragments`] (one fragment per pixel sample that hits, and the
-///   side points of the primary-edge samples as a band), the shader on both, and
-///   [`blend_traced`] (the box filter, with the edge terms in its backward). Lights in the
-///   shader are unshadowed.
+///   side points of the edge samples as a band), the shader on both, and [`blend_traced`]
+///   (the box filter, with the edge terms in its backward). Lights in the shader are
+///   unshadowed here; [`render_fragments_lit`] gives the fragments their visibility.
 ///
 /// # Errors
 /// The ops' and the shader's errors.
@@ -463,6 +463,30 @@ pub fn render_fragments<'t, T: Real>(
     s: &MethodSettings,
     shader: &mut FragmentShader<'_, 't, T>,
 ) -> Result<Var<'t, T>, RenderError> {
+    render_fragments_lit(clip, faces, s, None, shader)
+}
+
+/// [`render_fragments`] with the inputs of shadow rays: for `raytrace`, every fragment then
+/// carries the visibility of the directional and point lights ([`Rasterized::visibility`],
+/// which [`crate::shade::Surface::visibility`] takes), and the shadow boundaries' edge terms
+/// reach `shadows.world` and `shadows.lights`.
+///
+/// # Errors
+/// As [`render_fragments`]; `shadows` with a raster method (`Unsupported`: only the ray
+/// tracer casts shadows).
+pub fn render_fragments_lit<'t, T: Real>(
+    clip: Var<'t, T>,
+    faces: Arc<Vec<[u32; 3]>>,
+    s: &MethodSettings,
+    shadows: Option<ShadowInputs<'t, T>>,
+    shader: &mut FragmentShader<'_, 't, T>,
+) -> Result<Var<'t, T>, RenderError> {
+    if shadows.is_some() && s.method != Method::Raytrace {
+        return Err(RenderError::Unsupported(format!(
+            "'{}' casts no shadows: shadow rays are the ray tracer's ('raytrace')",
+            s.method.name()
+        )));
+    }
     let hard = |shader: &mut FragmentShader<'_, 't, T>| -> Result<_, RenderError> {
         let r = rasterize(clip, faces.clone(), &s.raster())?;
         let col = shader(&r)?;
@@ -496,7 +520,7 @@ pub fn render_fragments<'t, T: Real>(
             boundary::deodr_antialias(image, &r, clip, &s.boundary())
         }
         Method::Raytrace => {
-            let t = raytrace_fragments(clip, faces, &s.raytrace())?;
+            let t = raytrace_fragments(clip, faces, &s.raytrace(), shadows)?;
             let col = shader(&t.raster)?;
             let band = shader(&t.band)?;
             let bg = s

@@ -8,9 +8,9 @@ use autodiff::{Real, Tape, Tensor, Var};
 use ndarray::{ArrayD, IxDyn};
 
 use crate::error::RenderError;
-use crate::methods::{render_fragments, render_vertex_colors, MethodSettings, ViewSettings};
+use crate::methods::{render_fragments_lit, render_vertex_colors, MethodSettings, ViewSettings};
 use crate::raster::RasterSettings;
-use crate::raytrace::{raytrace, LightKind, RaytraceSettings, Reflection};
+use crate::raytrace::{raytrace, LightKind, RaytraceSettings, Reflection, ShadowInputs};
 use crate::scene::{Light, Scene};
 use crate::shade::stage::{texture_rgb, SceneShading, SCENE_SAMPLER};
 use crate::shade::{fragment_inputs, vertex_normals, MeshAttributes};
@@ -276,7 +276,7 @@ impl<T: Real> Scene<T> {
         if per_vertex {
             return render_vertex_colors(clip, self.vertex_colors(vars, kd)?, faces, &s);
         }
-        self.render_shaded(vars, clip, kd, &s)
+        self.render_shaded(vars, clip, kd, &s, None)
     }
 }
 
@@ -399,7 +399,7 @@ impl<T: Real> Scene<T> {
         }
         let faces = Arc::new(self.mesh.faces.clone());
         let normals = vertex_normals(vars.positions, &faces);
-        shading.apply(vars.positions, normals, albedo, self.eye(vars))
+        shading.apply(vars.positions, normals, albedo, self.eye(vars), None)
     }
 
     /// Per-fragment shading composed with the method of `s` ([`render_fragments`]): per
@@ -409,13 +409,16 @@ impl<T: Real> Scene<T> {
     /// A textured scene splits the mesh at uv seams ([`crate::mesh::Mesh::unified`]): the
     /// split vertices gather the clip coordinates, colours and normals of their source
     /// vertices, so gradients sum back onto `vars.positions` / `vars.colors`. The texture is
-    /// sampled with [`SCENE_SAMPLER`] (bilinear, repeat).
+    /// sampled with [`SCENE_SAMPLER`] (bilinear, repeat). With `shadow_rows` (the scene's
+    /// light rows, `raytrace` only) the fragments carry the lights' visibility by shadow rays
+    /// ([`render_fragments_lit`]).
     fn render_shaded<'t>(
         &self,
         vars: &SceneVars<'t, T>,
         clip: Var<'t, T>,
         kd: Var<'t, T>,
         s: &MethodSettings,
+        shadow_rows: Option<Var<'t, T>>,
     ) -> Result<Var<'t, T>, RenderError> {
         let t = vars.positions.tape();
         let shading = self.shading(vars);
@@ -426,10 +429,11 @@ impl<T: Real> Scene<T> {
             let mesh = MeshAttributes::new(vars.positions)
                 .with_normals(normals)
                 .with_attribute("color", vars.colors);
-            return render_fragments(clip, faces, s, &mut |r| {
+            let shadows = self.shadow_inputs(vars.positions, shadow_rows);
+            return render_fragments_lit(clip, faces, s, shadows, &mut |r| {
                 let f = fragment_inputs(r, &mesh, eye)?;
                 let albedo = f.attribute("color").expect("set above") * kd;
-                shading.apply(f.position, f.normal, albedo, f.eye)
+                shading.apply(f.position, f.normal, albedo, f.eye, f.visibility)
             });
         };
         if !self.mesh.has_uvs() {
@@ -447,22 +451,37 @@ impl<T: Real> Scene<T> {
         )
         .expect("v x 2");
         let rclip = clip.index_select(0, &index);
-        let mesh = MeshAttributes::new(vars.positions.index_select(0, &index))
+        let upos = vars.positions.index_select(0, &index);
+        let shadows = self.shadow_inputs(upos, shadow_rows);
+        let mesh = MeshAttributes::new(upos)
             .with_normals(normals.index_select(0, &index))
             .with_uvs(t.constant(uvs))
             .with_attribute("color", vars.colors.index_select(0, &index));
         let texture = Texture::new(texels, SCENE_SAMPLER);
-        render_fragments(rclip, ufaces, s, &mut |r| {
+        render_fragments_lit(rclip, ufaces, s, shadows, &mut |r| {
             let f = fragment_inputs(r, &mesh, eye)?;
             let tex = texture_rgb(f.sample(&texture))?;
             let albedo = f.attribute("color").expect("set above") * kd * tex;
-            shading.apply(f.position, f.normal, albedo, f.eye)
+            shading.apply(f.position, f.normal, albedo, f.eye, f.visibility)
         })
     }
 }
 
 /// The `raytrace` method on a scene.
 impl<T: Real> Scene<T> {
+    /// The inputs of the ray tracer's shadow rays: world positions and the scene's light rows.
+    fn shadow_inputs<'t>(
+        &self,
+        world: Var<'t, T>,
+        rows: Option<Var<'t, T>>,
+    ) -> Option<ShadowInputs<'t, T>> {
+        rows.map(|lights| ShadowInputs {
+            world,
+            lights,
+            kinds: self.raytrace_settings().lights,
+        })
+    }
+
     /// The ray tracer's settings for this scene: the registry's (`raster` block, size,
     /// background, clip planes) with the scene's eye, material and light kinds.
     pub fn raytrace_settings(&self) -> RaytraceSettings {
@@ -494,8 +513,8 @@ impl<T: Real> Scene<T> {
     /// Ray-traced render ([`crate::raytrace`]): albedo `kd` times the vertex colours,
     /// area-weighted vertex normals, the scene's lights (or `vars.lights`) with shadows. A
     /// textured scene goes through the fragment stages ([`crate::raytrace::stage`]) with the
-    /// scene's shader, whose lights are unshadowed: it may have ambient and SH lights (which the
-    /// ray tracer never shadows), and a directional, point or area light is `Unsupported`.
+    /// scene's shader and the shadows of its directional and point lights; an area light with
+    /// a texture is `Unsupported`.
     fn render_raytrace<'t>(
         &self,
         vars: &SceneVars<'t, T>,
@@ -503,27 +522,7 @@ impl<T: Real> Scene<T> {
         kd: Var<'t, T>,
         s: &MethodSettings,
     ) -> Result<Var<'t, T>, RenderError> {
-        if vars.texture.is_some() {
-            let casts = |l: &Light| {
-                matches!(
-                    l,
-                    Light::Directional { .. } | Light::Point { .. } | Light::Area { .. }
-                )
-            };
-            if self.desc.lights.iter().any(casts) {
-                return Err(RenderError::Unsupported(
-                    "raster.method 'raytrace' shades a textured scene through the fragment \
-                     stages, whose lights are unshadowed: use ambient or SH lights, or vertex \
-                     colours for directional, point and area lights with shadows"
-                        .into(),
-                ));
-            }
-            return self.render_shaded(vars, clip, kd, s);
-        }
         let t = vars.positions.tape();
-        let faces = Arc::new(self.mesh.faces.clone());
-        let normals = vertex_normals(vars.positions, &faces);
-        let albedo = vars.colors * kd;
         let lights = match vars.lights {
             Some(l) => l,
             None => {
@@ -532,6 +531,25 @@ impl<T: Real> Scene<T> {
                 t.constant(ArrayD::from_shape_vec(IxDyn(&[rows.len(), 3]), data).expect("n x 3"))
             }
         };
+        if vars.texture.is_some() {
+            if self
+                .desc
+                .lights
+                .iter()
+                .any(|l| matches!(l, Light::Area { .. }))
+            {
+                return Err(RenderError::Unsupported(
+                    "raster.method 'raytrace' shades a textured scene through its fragment \
+                     stages, which cast shadows of directional and point lights: area lights \
+                     need vertex colours"
+                        .into(),
+                ));
+            }
+            return self.render_shaded(vars, clip, kd, s, Some(lights));
+        }
+        let faces = Arc::new(self.mesh.faces.clone());
+        let normals = vertex_normals(vars.positions, &faces);
+        let albedo = vars.colors * kd;
         raytrace(
             clip,
             vars.positions,

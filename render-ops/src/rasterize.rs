@@ -24,6 +24,10 @@ pub struct Rasterized<'t, T: Real> {
     pub depth: Var<'t, T>,
     /// View-space depth per fragment `[N]`.
     pub view_depth: Var<'t, T>,
+    /// Light visibility per fragment `[N, L]` (1 lit, 0 in shadow; a constant), where the
+    /// visibility method traces shadow rays (`raytrace`); columns: the directional lights,
+    /// then the point lights, each in scene order (the order of [`crate::shade::Lights`]).
+    pub visibility: Option<Var<'t, T>>,
 }
 
 /// Copies a [V, 4] tensor into per-vertex arrays.
@@ -294,5 +298,6 @@ pub(crate) fn record_at<'t, T: Real>(
         bary: outs[0],
         depth: outs[1],
         view_depth: outs[2],
+        visibility: None,
     }
 }

@@ -1022,6 +1022,7 @@ pub fn analytic_fragments<'t, T: Real>(
             bary: outs[0],
             depth: outs[1],
             view_depth: outs[2],
+            visibility: None,
         },
         weight: outs[3],
     })

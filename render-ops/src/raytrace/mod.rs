@@ -68,4 +68,4 @@ mod op;
 
 pub use op::{raytrace, RaytraceSettings};
 pub use shading::{LightKind, Reflection};
-pub use stage::{blend_traced, raytrace_fragments, TracedFragments};
+pub use stage::{blend_traced, raytrace_fragments, ShadowInputs, TracedFragments};

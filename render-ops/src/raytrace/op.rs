@@ -157,18 +157,7 @@ pub fn raytrace<'t, T: Real>(
         ("albedo", albedo, [v, 3]),
         ("lights", lights, [n_rows, 3]),
     ];
-    for (name, var, shape) in want {
-        let val = var.value_ref()?;
-        if val.shape() != shape {
-            return Err(AutodiffError::shape(
-                "raytrace",
-                &[val.shape()],
-                format!("{name} must be {shape:?}"),
-            )
-            .into());
-        }
-        RenderError::check_finite(name, &val.view())?;
-    }
+    check_inputs("raytrace", &want)?;
     check_faces(&faces, v)?;
     let op = RaytraceOp {
         faces,
@@ -177,6 +166,26 @@ pub fn raytrace<'t, T: Real>(
     Ok(clip
         .tape()
         .apply(op, &[clip, world, normals, albedo, lights]))
+}
+
+/// Each named input has its shape and finite values.
+pub(super) fn check_inputs<T: Real, const N: usize>(
+    op: &'static str,
+    want: &[(&'static str, Var<'_, T>, [usize; N])],
+) -> Result<(), RenderError> {
+    for (name, var, shape) in want {
+        let val = var.value_ref()?;
+        if val.shape() != shape {
+            return Err(AutodiffError::shape(
+                op,
+                &[val.shape()],
+                format!("{name} must be {shape:?}"),
+            )
+            .into());
+        }
+        RenderError::check_finite(name, &val.view())?;
+    }
+    Ok(())
 }
 
 /// Every face index is below `v`.
@@ -215,10 +224,10 @@ pub(super) struct Scene<'a> {
     pub(super) faces: &'a [[u32; 3]],
     q: Vec<V3>,
     clip: Vec<[f64; 4]>,
-    world: Vec<V3>,
+    pub(super) world: Vec<V3>,
     normals: Vec<V3>,
     albedo: Vec<V3>,
-    light_rows: Vec<V3>,
+    pub(super) light_rows: Vec<V3>,
     primary: Bvh,
     shadow: Option<Bvh>,
     /// Scale of the world coordinates (shadow-ray offsets).
@@ -291,6 +300,18 @@ impl<'a> Scene<'a> {
         Scene::build(s, faces, clip, world, Vec::new(), Vec::new(), Vec::new())
     }
 
+    /// The primary rays' and shadow rays' scene (the fragment stage with lights): no
+    /// shading inputs.
+    pub(super) fn with_lights(
+        s: &'a RaytraceSettings,
+        faces: &'a [[u32; 3]],
+        clip: Vec<[f64; 4]>,
+        world: Vec<V3>,
+        light_rows: Vec<V3>,
+    ) -> Self {
+        Scene::build(s, faces, clip, world, Vec::new(), Vec::new(), light_rows)
+    }
+
     fn build(
         s: &'a RaytraceSettings,
         faces: &'a [[u32; 3]],
@@ -344,7 +365,7 @@ impl<'a> Scene<'a> {
         (u, ctr)
     }
 
-    fn lights(&self) -> LightSet<'_> {
+    pub(super) fn lights(&self) -> LightSet<'_> {
         LightSet::new(&self.s.lights, &self.light_rows).expect("rows checked")
     }
 
@@ -389,7 +410,7 @@ impl<'a> Scene<'a> {
 
     /// Shadow test from `x` (geometric normal `ng`): the origin is pushed off the surface
     /// towards the light by a small multiple of the scene's scale.
-    fn visible(&self, x: V3, ng: V3, q: Shadow) -> bool {
+    pub(super) fn visible(&self, x: V3, ng: V3, q: Shadow) -> bool {
         let Some(bvh) = &self.shadow else {
             return true;
         };
@@ -424,6 +445,7 @@ impl<'a> Scene<'a> {
     /// (and, for `area_edges`, the area-light edge terms of this sample) into `acc`.
     fn radiance(
         &self,
+        lights: &LightSet<'_>,
         u: [f64; 2],
         mut ctr: Counter,
         grad: Option<([f64; 4], &mut Acc)>,
@@ -433,7 +455,6 @@ impl<'a> Scene<'a> {
         let Some(hit) = self.hit(u) else {
             return [bg[0], bg[1], bg[2], 0.0];
         };
-        let lights = self.lights();
         let ab = self.area_samples(&mut ctr, lights.n_area);
         let mut vis = |q| self.visible(hit.x, hit.ng, q);
         let mut sg = ShadeGrad::default();
@@ -505,8 +526,9 @@ impl<'a> Scene<'a> {
     fn two_sided(&self, u: [f64; 2], a: [f64; 2], ctr: Counter) -> Option<(usize, [f64; 4])> {
         let p = self.pixel(u)?;
         let [um, up] = side_points(u, a)?;
-        let minus = self.radiance(um, ctr, None, None);
-        let plus = self.radiance(up, ctr, None, None);
+        let lights = self.lights();
+        let minus = self.radiance(&lights, um, ctr, None, None);
+        let plus = self.radiance(&lights, up, ctr, None, None);
         Some((p, std::array::from_fn(|k| minus[k] - plus[k])))
     }
 
@@ -653,11 +675,14 @@ impl<'a> Scene<'a> {
         add_to(&mut acc.clip, ep.v[1] as usize, g[1]);
     }
 
-    /// One shadow-edge sample of a point or directional light (module docs).
-    fn shadow_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
-        let Some(bvh) = &self.shadow else {
-            return;
-        };
+    /// Where shadow-edge sample `j` of a point or directional light falls in the image
+    /// (module docs), with its counter; `None` when it casts no visible shadow edge.
+    pub(super) fn shadow_edge_point(
+        &self,
+        j: usize,
+        edges: &Edges,
+    ) -> Option<(ShadowEdgePoint, Counter)> {
+        let bvh = self.shadow.as_ref()?;
         let mut ctr = Counter::new(self.s.seed, Stream::ShadowEdge, j as u64);
         let (pick, pe) = edges.shadow.sample(ctr.uniform());
         let s = ctr.uniform();
@@ -678,25 +703,21 @@ impl<'a> Scene<'a> {
             (p, lrow)
         };
         if dot3(dir, dir) == 0.0 {
-            return;
+            return None;
         }
         // The receiver: the first surface beyond the edge point, away from the light.
-        let Some(h) = bvh.closest(&Ray::new(p, dir), 1e-9, f64::INFINITY) else {
-            return;
-        };
+        let h = bvh.closest(&Ray::new(p, dir), 1e-9, f64::INFINITY)?;
         if edge.faces.contains(&h.face) {
-            return;
+            return None;
         }
         let tri = self.faces[h.face as usize];
         let r = tri.map(|i| self.world[i as usize]);
-        let Some(ph) = plane_hit(origin, dir, r) else {
-            return;
-        };
+        let ph = plane_hit(origin, dir, r)?;
         let beta = ph.beta;
         let cl = tri.map(|i| self.clip[i as usize]);
         let cy: [f64; 4] = std::array::from_fn(|k| (0..3).map(|i| beta[i] * cl[i][k]).sum());
         if cy[3] <= self.s.near {
-            return;
+            return None;
         }
         let (u, dpi) = self.project(cy);
         // d u / d beta_k (k = 1, 2), then d u / d (ray and triangle motion).
@@ -715,25 +736,104 @@ impl<'a> Scene<'a> {
         let t = ph.t;
         let coef_p = if point { t } else { 1.0 };
         let a = [coef_p * dot3(jw[0], dp), coef_p * dot3(jw[1], dp)];
-        let Some((px, delta)) = self.two_sided(u, a, ctr) else {
+        let sp = ShadowEdgePoint {
+            row: o,
+            point,
+            edge: edge.v,
+            s,
+            t,
+            receiver: tri,
+            beta,
+            u,
+            a,
+            jw,
+            dpi,
+            weight: 1.0 / (self.s.shadow_edge_samples as f64 * pe),
+        };
+        Some((sp, ctr))
+    }
+
+    /// One shadow-edge sample of a point or directional light (module docs).
+    fn shadow_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
+        let Some((sp, ctr)) = self.shadow_edge_point(j, edges) else {
             return;
         };
-        let scal = dot4(gimg[px], delta) / (self.s.shadow_edge_samples as f64 * pe);
-        if scal == 0.0 {
+        let Some((px, delta)) = self.two_sided(sp.u, sp.a, ctr) else {
+            return;
+        };
+        let g_delta = dot4(gimg[px], delta);
+        if g_delta == 0.0 {
             return;
         }
+        let g = sp.grads(g_delta);
+        add_to(&mut acc.rows, g.row.0, g.row.1);
+        for (v, x) in g.world {
+            add_to(&mut acc.world, v as usize, x);
+        }
+        for (v, x) in g.clip {
+            add_to(&mut acc.clip, v as usize, x);
+        }
+    }
+}
+
+/// A shadow-edge sample: the point `v0 + s (v1 - v0)` of occluder edge `edge`, whose ray from
+/// the light (rows from `row`; `point` or directional) meets the receiver triangle at
+/// barycentrics `beta` (ray parameter `t`), seen at image point `u`; `a` is the image tangent
+/// of the shadow edge there, `jw` the rows of `d u / d (world motion)` through the receiver
+/// plane, `dpi` those of `d u / d clip`; `weight` is `1 / (N p)`.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct ShadowEdgePoint {
+    row: usize,
+    point: bool,
+    edge: [u32; 2],
+    s: f64,
+    t: f64,
+    receiver: [u32; 3],
+    beta: V3,
+    pub u: [f64; 2],
+    pub a: [f64; 2],
+    jw: [V3; 2],
+    dpi: [[f64; 4]; 2],
+    weight: f64,
+}
+
+/// The gradients of one shadow-edge sample: a light row, five world positions (the edge's
+/// two vertices, the receiver's three) and the receiver's three clip positions.
+pub(super) struct ShadowEdgeGrads {
+    pub row: (usize, V3),
+    pub world: [(u32, V3); 5],
+    pub clip: [(u32, [f64; 4]); 3],
+}
+
+impl ShadowEdgePoint {
+    /// The gradients for a two-sided difference whose product with the output gradient is
+    /// `g_delta` (the difference times the normal velocity of the shadow edge's image, Li et
+    /// al. 2018 eq. 7, as a function of the occluder edge, the light, the receiver and the
+    /// camera).
+    pub fn grads(&self, g_delta: f64) -> ShadowEdgeGrads {
+        let scal = g_delta * self.weight;
+        let (a, jw, dpi) = (self.a, self.jw, self.dpi);
         let z = scale3(sub3(scale3(jw[1], a[0]), scale3(jw[0], a[1])), scal);
         let z4: [f64; 4] = std::array::from_fn(|k| scal * (a[0] * dpi[1][k] - a[1] * dpi[0][k]));
-        add_to(&mut acc.rows, o, scale3(z, if point { 1.0 - t } else { t }));
-        add_to(
-            &mut acc.world,
-            edge.v[0] as usize,
-            scale3(z, coef_p * (1.0 - s)),
-        );
-        add_to(&mut acc.world, edge.v[1] as usize, scale3(z, coef_p * s));
-        for i in 0..3 {
-            add_to(&mut acc.world, tri[i] as usize, scale3(z, -beta[i]));
-            add_to(&mut acc.clip, tri[i] as usize, z4.map(|x| x * beta[i]));
+        let (t, s) = (self.t, self.s);
+        let coef_p = if self.point { t } else { 1.0 };
+        let row = scale3(z, if self.point { 1.0 - t } else { t });
+        let [r0, r1, r2] = self.receiver;
+        let b = self.beta;
+        ShadowEdgeGrads {
+            row: (self.row, row),
+            world: [
+                (self.edge[0], scale3(z, coef_p * (1.0 - s))),
+                (self.edge[1], scale3(z, coef_p * s)),
+                (r0, scale3(z, -b[0])),
+                (r1, scale3(z, -b[1])),
+                (r2, scale3(z, -b[2])),
+            ],
+            clip: [
+                (r0, z4.map(|x| x * b[0])),
+                (r1, z4.map(|x| x * b[1])),
+                (r2, z4.map(|x| x * b[2])),
+            ],
         }
     }
 }
@@ -822,7 +922,7 @@ pub(super) struct Edges {
     primary_part: Vec<[f64; 2]>,
     /// (light, edge) pairs of point and directional lights, silhouettes seen from the light,
     /// by world length; `shadow` samples indices into `shadow_items`.
-    shadow: Cdf,
+    pub(super) shadow: Cdf,
     shadow_items: Vec<(usize, u32)>,
     /// Per area light, every edge by world length, times [`AREA_EDGE_BOOST`] where
     /// [`casts_shadow`] (the silhouette test is per shading point).
@@ -947,6 +1047,7 @@ impl<T: Real> Op<T> for RaytraceOp {
     fn forward(&mut self, inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
         let sc = Scene::new(self, inputs);
         let (w, h, spp) = (self.s.width, self.s.height, self.s.spp);
+        let lights = sc.lights();
         let mut img = vec![T::zero(); h * w * 4];
         img.par_chunks_mut(w * 4).enumerate().for_each(|(r, row)| {
             for c in 0..w {
@@ -954,7 +1055,7 @@ impl<T: Real> Op<T> for RaytraceOp {
                 let mut sum = [0.0; 4];
                 for k in 0..spp {
                     let (u, ctr) = sc.sample(pix, k);
-                    let v = sc.radiance(u, ctr, None, None);
+                    let v = sc.radiance(&lights, u, ctr, None, None);
                     for ch in 0..4 {
                         sum[ch] += v[ch];
                     }
@@ -977,6 +1078,7 @@ impl<T: Real> Op<T> for RaytraceOp {
         let sc = Scene::new(self, ctx.inputs);
         let gimg: Vec<[f64; 4]> = rows(ctx.grad_outputs[0]);
         let edges = Edges::new(&sc);
+        let lights = sc.lights();
         let (w, h, spp) = (self.s.width, self.s.height, self.s.spp);
         let v = sc.q.len();
         let n_rows = sc.light_rows.len();
@@ -1002,7 +1104,7 @@ impl<T: Real> Op<T> for RaytraceOp {
                             let index = (pix * spp + k) as u64;
                             let (u, ctr) = sc.sample(pix, k);
                             let ae = area_edges.then_some((&edges, index));
-                            sc.radiance(u, ctr, Some((g, &mut acc)), ae);
+                            sc.radiance(&lights, u, ctr, Some((g, &mut acc)), ae);
                         }
                     }
                 }

@@ -1,45 +1,56 @@
 //! The ray tracer as stages of the fragment pipeline, so that textures and any per-fragment
-//! shader compose with it (ARCHITECTURE.md, "The ray tracer"):
+//! shader compose with it, shadows included (ARCHITECTURE.md, "The ray tracer"):
 //!
 //! ```text
-//! clip [V, 4] ─► raytrace_fragments(clip, faces, RaytraceSettings)
+//! clip [V, 4] (+ world [V, 3], light rows) ─► raytrace_fragments(clip, faces, settings, shadows)
 //!    │  raster: one fragment per pixel sample that hits a face (the fused op's samples:
 //!    │          same strata, jitter and seed), in sample order per pixel
-//!    │  band:   the hits of the two side points `u -+ eps n` of every primary-edge sample
+//!    │  band:   the hits of the two side points `u -+ eps n` of every edge sample: primary
+//!    │          (silhouette and occlusion) edges, and shadow boundaries of the directional
+//!    │          and point lights
+//!    │  with shadows, each fragment's `visibility` [N, L]: shadow rays from its surface point
 //!    ▼
-//! the shader on `raster` and on `band` (any tape code, as on a rasterization)
+//! the shader on `raster` and on `band` (any tape code, as on a rasterization; the built-in
+//! shading scales each light by its visibility column)
 //!    ▼
 //! blend_traced(colours, band colours, traced, clip, background) -> image [H, W, C + 1]
 //!       forward: the box filter, `sum_s c_s / spp + (1 - hits / spp) background`
-//!       backward: the samples' colours get `g / spp`; the clip positions get the
-//!       primary-edge terms (Li et al. 2018, eq. 5-7) from the shaded sides
+//!       backward: the samples' colours get `g / spp`; the edge terms (Li et al. 2018,
+//!       eq. 5-7) from the shaded sides reach the clip positions, and for shadow boundaries
+//!       the world positions and the light rows
 //! ```
 //!
 //! A fragment's barycentrics are those of the ray's hit, which are the perspective-correct
 //! barycentrics of the rasterizer at the sample's image point, so the fragments are recorded
 //! as a rasterization whose backward takes the rasterizer's product at each fragment's own
-//! point instead of its pixel centre (`rasterize::record_at`). The edge
-//! samples are the fused op's (the same edges, positions and weights for a seed), so for
-//! per-vertex colours the composed render and its gradient equal the fused op's (tested).
+//! point instead of its pixel centre (`rasterize::record_at`). The edge samples, their
+//! placement and their normal velocities are the fused op's (`EdgePoint`, `ShadowEdgePoint`),
+//! and so are the shadow rays, so for the built-in shading with vertex colours the composed
+//! render and its gradients equal the fused op's (tested).
 //!
-//! Lights in a composed shader are unshadowed, as in the rasterizers: shadow rays, and the
-//! shadow and area-light edge terms, are the fused op's ([`super::raytrace`]), which
-//! `Scene::render` uses for its built-in shading. A band fragment is listed under the pixel of
-//! its edge point; its side point lies within `1e-3` pixel of it.
+//! The visibility is a constant: its derivative is the shadow-edge terms, whose two sides are
+//! shaded by the same shader with the visibility their own shadow rays give. Area lights are
+//! the fused op's only (their samples and edge terms live inside its shading). A band fragment
+//! is listed under the pixel of its edge point; its side point lies within `1e-3` pixel of it.
 
 use std::sync::Arc;
 
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
+use smallvec::SmallVec;
 
 use crate::blend::blend_weighted;
 use crate::error::RenderError;
 use crate::raster::{Fragments, RasterSettings};
 use crate::rasterize::{record_at, Rasterized};
-use crate::shade::cross3;
+use crate::shade::{acc3, cross3, scale3};
 
-use super::op::{check_faces, rows, side_points, EdgePoint, Edges, Scene};
+use super::edges::face_normal;
+use super::op::{
+    check_faces, check_inputs, rows, side_points, EdgePoint, Edges, Scene, ShadowEdgePoint,
+};
+use super::shading::{LightKind, Shadow};
 use super::RaytraceSettings;
 
 /// The fragments of a ray-traced render ([`raytrace_fragments`]).
@@ -51,13 +62,14 @@ pub struct TracedFragments<'t, T: Real> {
     /// Each sample fragment's weight in its pixel, `1 / spp` (a constant).
     pub weight: Var<'t, T>,
     edges: Arc<Vec<EdgeSample>>,
+    shadows: Option<ShadowInputs<'t, T>>,
 }
 
-/// A primary-edge sample: its point, its pixel, and the band fragment of each side (`None`:
-/// the side sees the background).
+/// An edge sample: its point, its pixel, and the band fragment of each side (`None`: the side
+/// sees the background).
 #[derive(Clone, Copy, Debug)]
 struct EdgeSample {
-    point: EdgePoint,
+    kind: EdgeKind,
     pixel: u32,
     sides: [Option<u32>; 2],
 }
@@ -126,38 +138,126 @@ fn pack<T: Real>(frags: &[Frag], width: usize, height: usize) -> (Fragments<T>, 
     (f, frags.iter().map(|fr| fr.5).collect())
 }
 
-/// Casts the primary rays of `settings`' pixel samples and of its primary-edge samples' sides
-/// (module docs). Only `width`, `height`, `spp`, `seed`, `near`, `far` and
-/// `primary_edge_samples` are read; lights and shading belong to the shader.
+/// The inputs of [`raytrace_fragments`]' shadow rays: world positions `[V, 3]` and the light
+/// rows `[n, 3]` of `kinds` (layout of [`super::raytrace`]'s `lights`). The visibility they
+/// give is a constant; its derivative is [`blend_traced`]'s shadow-edge terms, which reach
+/// these two inputs and the clip positions.
+#[derive(Clone, Debug)]
+pub struct ShadowInputs<'t, T: Real> {
+    /// World positions `[V, 3]`, the clip positions' vertices.
+    pub world: Var<'t, T>,
+    /// Light rows `[n, 3]`.
+    pub lights: Var<'t, T>,
+    /// The lights' kinds, in the order of their rows (ambient, directional, point, sh; area
+    /// lights are sampled by the fused op only).
+    pub kinds: Vec<LightKind>,
+}
+
+/// An edge sample of the stage: where it falls, and the clip gradients it gives.
+#[derive(Clone, Copy, Debug)]
+enum EdgeKind {
+    /// A silhouette or occlusion edge seen from the camera.
+    Primary(EdgePoint),
+    /// An occluder edge's shadow boundary, from a directional or point light.
+    Shadow(ShadowEdgePoint),
+}
+
+/// The visibility columns (directional lights, then point lights, each in scene order) and
+/// their shadow queries from a point: indices into `kinds`.
+fn visibility_columns(kinds: &[LightKind]) -> Vec<usize> {
+    let of = |k| {
+        kinds
+            .iter()
+            .enumerate()
+            .filter(move |(_, x)| **x == k)
+            .map(|(i, _)| i)
+    };
+    of(LightKind::Directional)
+        .chain(of(LightKind::Point))
+        .collect()
+}
+
+/// Casts the primary rays of `settings`' pixel samples and of the two sides of its edge
+/// samples (module docs): primary edges, and with `shadows` the shadow boundaries of its
+/// directional and point lights, whose visibility each fragment then carries
+/// ([`Rasterized::visibility`], by shadow rays as the fused op casts them). `width`, `height`,
+/// `spp`, `seed`, `near`, `far`, `shadows` and the edge sample counts are read; the settings'
+/// own `lights` are replaced by `shadows.kinds`; shading belongs to the shader.
 ///
 /// # Errors
-/// `clip` not `[V, 4]` or not finite, face indices out of range, invalid settings.
+/// `clip` not `[V, 4]`, `world` not `[V, 3]`, light rows not those of `kinds`, non-finite
+/// values, face indices out of range, an area light (`Unsupported`), invalid settings.
 pub fn raytrace_fragments<'t, T: Real>(
     clip: Var<'t, T>,
     faces: Arc<Vec<[u32; 3]>>,
     settings: &RaytraceSettings,
+    shadows: Option<ShadowInputs<'t, T>>,
 ) -> Result<TracedFragments<'t, T>, RenderError> {
     settings.validate()?;
+    let kinds = shadows.as_ref().map_or(Vec::new(), |x| x.kinds.clone());
+    if kinds.contains(&LightKind::Area) {
+        return Err(RenderError::Unsupported(
+            "raytrace fragments: area lights are sampled by the fused raytrace op only (built-in \
+             shading with vertex colours)"
+                .into(),
+        ));
+    }
     let s = RaytraceSettings {
-        lights: Vec::new(),
-        shadows: false,
+        lights: kinds.clone(),
         ..settings.clone()
     };
-    let cv = clip.value_ref()?;
-    let v = cv.shape().first().copied().unwrap_or(0);
-    if cv.shape() != [v, 4] {
-        return Err(AutodiffError::shape(
-            "raytrace_fragments",
-            &[cv.shape()],
-            "clip must be [V, 4]",
-        )
-        .into());
+    let v = clip.shape().first().copied().unwrap_or(0);
+    let n_rows: usize = kinds.iter().map(|k| k.rows()).sum();
+    check_inputs("raytrace_fragments", &[("clip", clip, [v, 4])])?;
+    if let Some(sh) = &shadows {
+        let want = [
+            ("world", sh.world, [v, 3]),
+            ("lights", sh.lights, [n_rows, 3]),
+        ];
+        check_inputs("raytrace_fragments", &want)?;
     }
-    RenderError::check_finite("clip", &cv.view())?;
     check_faces(&faces, v)?;
-    let clip_f64: Vec<[f64; 4]> = rows(&cv.view());
-    drop(cv);
-    let sc = Scene::primary_only(&s, &faces, clip_f64.clone());
+    let clip_f64: Vec<[f64; 4]> = rows(&clip.value_ref()?.view());
+    let sc = match &shadows {
+        Some(sh) => Scene::with_lights(
+            &s,
+            &faces,
+            clip_f64.clone(),
+            rows(&sh.world.value_ref()?.view()),
+            rows(&sh.lights.value_ref()?.view()),
+        ),
+        None => Scene::primary_only(&s, &faces, clip_f64.clone()),
+    };
+    let columns = if shadows.is_some() && s.shadows {
+        visibility_columns(&kinds)
+    } else {
+        Vec::new()
+    };
+    let lights = sc.lights();
+    // The visibility of each column's light from the surface point of a fragment.
+    let visibility = |fr: &Frag| -> SmallVec<[f64; 4]> {
+        let tri = faces[fr.1 as usize];
+        let mut x = [0.0; 3];
+        for (i, &vi) in tri.iter().enumerate() {
+            acc3(&mut x, scale3(sc.world[vi as usize], fr.2[i]));
+        }
+        let ng = face_normal(&sc.world, &tri);
+        columns
+            .iter()
+            .map(|&li| {
+                let r = sc.light_rows[lights.offsets[li]];
+                let q = match kinds[li] {
+                    LightKind::Directional => Shadow::Along(scale3(r, -1.0)),
+                    _ => Shadow::Toward(r),
+                };
+                if sc.visible(x, ng, q) {
+                    1.0
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    };
     let (w, h, spp) = (s.width, s.height, s.spp);
     let samples: Vec<Frag> = (0..h)
         .into_par_iter()
@@ -170,20 +270,31 @@ pub fn raytrace_fragments<'t, T: Real>(
         })
         .collect();
     let edges = Edges::new(&sc);
-    let n_edge = if edges.primary.is_empty() {
+    let n_primary = if edges.primary.is_empty() {
         0
     } else {
         s.primary_edge_samples
     };
-    // Per edge sample: its point, pixel and side hits; then the band in pixel order (stable in
-    // the sample index, so the order is fixed).
-    let placed: Vec<Option<(EdgePoint, usize, [Option<Frag>; 2])>> = (0..n_edge)
+    let n_shadow = if edges.shadow.is_empty() {
+        0
+    } else {
+        s.shadow_edge_samples
+    };
+    // Per edge sample (primary, then shadow): its point, pixel and side hits; then the band in
+    // pixel order (stable in the sample index, so the order is fixed).
+    let placed: Vec<Option<(EdgeKind, usize, [Option<Frag>; 2])>> = (0..n_primary + n_shadow)
         .into_par_iter()
         .map(|j| {
-            let (ep, _) = sc.primary_edge_point(j, &edges)?;
-            let p = sc.pixel(ep.u)?;
-            let sides = side_points(ep.u, ep.a)?;
-            Some((ep, p, sides.map(|u| fragment(&sc, &clip_f64, p, u))))
+            let (kind, u, a) = if j < n_primary {
+                let (ep, _) = sc.primary_edge_point(j, &edges)?;
+                (EdgeKind::Primary(ep), ep.u, ep.a)
+            } else {
+                let (sp, _) = sc.shadow_edge_point(j - n_primary, &edges)?;
+                (EdgeKind::Shadow(sp), sp.u, sp.a)
+            };
+            let p = sc.pixel(u)?;
+            let sides = side_points(u, a)?;
+            Some((kind, p, sides.map(|u| fragment(&sc, &clip_f64, p, u))))
         })
         .collect();
     let mut order: Vec<usize> = (0..placed.len()).filter(|&j| placed[j].is_some()).collect();
@@ -191,7 +302,7 @@ pub fn raytrace_fragments<'t, T: Real>(
     let mut band_frags = Vec::new();
     let mut edge_list = Vec::with_capacity(order.len());
     for j in order {
-        let (ep, p, sides) = placed[j].expect("kept");
+        let (kind, p, sides) = placed[j].expect("kept");
         let mut idx = [None; 2];
         for (k, side) in sides.into_iter().enumerate() {
             if let Some(fr) = side {
@@ -200,7 +311,7 @@ pub fn raytrace_fragments<'t, T: Real>(
             }
         }
         edge_list.push(EdgeSample {
-            point: ep,
+            kind,
             pixel: p as u32,
             sides: idx,
         });
@@ -209,7 +320,17 @@ pub fn raytrace_fragments<'t, T: Real>(
     let rs = RasterSettings::new(w, h);
     let make = |frags: &[Frag]| {
         let (f, ndc) = pack::<T>(frags, w, h);
-        record_at(clip, Arc::new(f), faces.clone(), &rs, Some(ndc))
+        let mut r = record_at(clip, Arc::new(f), faces.clone(), &rs, Some(ndc));
+        if !columns.is_empty() {
+            let l = columns.len();
+            let vis: Vec<T> = frags
+                .par_iter()
+                .flat_map_iter(|fr| visibility(fr).into_iter().map(T::from_f64c))
+                .collect();
+            let vis = ArrayD::from_shape_vec(IxDyn(&[frags.len(), l]), vis).expect("n x l");
+            r.visibility = Some(tape.constant(vis));
+        }
+        r
     };
     let raster = make(&samples);
     let band = make(&band_frags);
@@ -222,12 +343,15 @@ pub fn raytrace_fragments<'t, T: Real>(
         band,
         weight,
         edges: Arc::new(edge_list),
+        shadows: shadows.filter(|_| s.shadows),
     })
 }
 
-/// The box-filtered image of traced fragments shaded `colors` `[N, C]`, with the primary-edge
-/// terms of the side fragments shaded `band` `[M, C]` in its backward (module docs):
-/// `[H, W, C + 1]`, the last channel the covered fraction of the samples.
+/// The box-filtered image of traced fragments shaded `colors` `[N, C]`, with the edge terms
+/// of the side fragments shaded `band` `[M, C]` in its backward (module docs): `[H, W, C + 1]`,
+/// the last channel the covered fraction of the samples. The primary-edge terms reach `clip`;
+/// the shadow-edge terms reach `clip` and the world positions and light rows of the stage's
+/// [`ShadowInputs`].
 ///
 /// # Errors
 /// Shapes (colours not `[N, C]`, band not `[M, C]`, background not `C` values).
@@ -256,7 +380,11 @@ pub fn blend_traced<'t, T: Real>(
         edges: traced.edges.clone(),
         background: background.iter().map(|x| x.to_f64c()).collect(),
     };
-    Ok(image.tape().apply(op, &[image, band, clip]))
+    let mut inputs = vec![image, band, clip];
+    if let Some(sh) = &traced.shadows {
+        inputs.extend([sh.world, sh.lights]);
+    }
+    Ok(image.tape().apply(op, &inputs))
 }
 
 /// Passes the image through; its backward adds the primary-edge terms to the clip positions.
@@ -275,17 +403,18 @@ impl<T: Real> Op<T> for EdgeTermsOp {
     }
 
     fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
+        let need = ctx.needs_grad;
         let g = ctx.grad_outputs[0];
-        let g_image = ctx.needs_grad[0].then(|| g.to_owned());
-        if !ctx.needs_grad[2] {
-            return Ok(vec![g_image, None, None]);
+        let mut out: Vec<Option<Tensor<T>>> = vec![None; need.len()];
+        out[0] = need[0].then(|| g.to_owned());
+        if !need[2..].iter().any(|&b| b) {
+            return Ok(out);
         }
         let c = self.background.len();
         let g = g.as_standard_layout();
         let g = g.as_slice().expect("standard");
         let band = ctx.inputs[1].as_standard_layout();
         let band = band.as_slice().expect("standard");
-        let v = ctx.inputs[2].shape()[0];
         // The colour and coverage of a side: its band fragment's, or the background's.
         let side = |s: Option<u32>, k: usize| match s {
             Some(i) if k < c => band[i as usize * c + k].to_f64c(),
@@ -293,30 +422,71 @@ impl<T: Real> Op<T> for EdgeTermsOp {
             None if k < c => self.background[k],
             None => 0.0,
         };
-        let grads: Vec<[[f64; 4]; 2]> = self
+        let g_delta: Vec<f64> = self
             .edges
             .par_iter()
             .map(|e| {
                 let gp = &g[e.pixel as usize * (c + 1)..][..c + 1];
-                let g_delta: f64 = (0..=c)
+                (0..=c)
                     .map(|k| gp[k].to_f64c() * (side(e.sides[0], k) - side(e.sides[1], k)))
-                    .sum();
-                e.point.clip_grads(g_delta)
+                    .sum()
             })
             .collect();
-        let mut acc = vec![[0.0f64; 4]; v];
-        for (e, gr) in self.edges.iter().zip(&grads) {
-            for (k, &vi) in e.point.v.iter().enumerate() {
-                for (a, x) in acc[vi as usize].iter_mut().zip(gr[k]) {
+        // Dense accumulators, added in edge order (the same on any pool).
+        let v = ctx.inputs[2].shape()[0];
+        let n_rows = ctx.inputs.get(4).map_or(0, |l| l.shape()[0]);
+        let mut clip = vec![[0.0f64; 4]; if need[2] { v } else { 0 }];
+        let mut world = vec![[0.0f64; 3]; if need.get(3) == Some(&true) { v } else { 0 }];
+        let mut rows = vec![
+            [0.0f64; 3];
+            if need.get(4) == Some(&true) {
+                n_rows
+            } else {
+                0
+            }
+        ];
+        fn add<const N: usize>(acc: &mut [[f64; N]], i: usize, x: [f64; N]) {
+            if let Some(a) = acc.get_mut(i) {
+                for (a, x) in a.iter_mut().zip(x) {
                     *a += x;
                 }
             }
         }
-        let out = acc.into_iter().flatten().map(T::from_f64c).collect();
-        Ok(vec![
-            g_image,
-            None,
-            Some(ArrayD::from_shape_vec(IxDyn(&[v, 4]), out).expect("v x 4")),
-        ])
+        for (e, &gd) in self.edges.iter().zip(&g_delta) {
+            if gd == 0.0 {
+                continue;
+            }
+            match e.kind {
+                EdgeKind::Primary(ep) => {
+                    let gr = ep.clip_grads(gd);
+                    add(&mut clip, ep.v[0] as usize, gr[0]);
+                    add(&mut clip, ep.v[1] as usize, gr[1]);
+                }
+                EdgeKind::Shadow(sp) => {
+                    let gr = sp.grads(gd);
+                    add(&mut rows, gr.row.0, gr.row.1);
+                    for (vi, x) in gr.world {
+                        add(&mut world, vi as usize, x);
+                    }
+                    for (vi, x) in gr.clip {
+                        add(&mut clip, vi as usize, x);
+                    }
+                }
+            }
+        }
+        let tensor = |a: Vec<f64>, shape: [usize; 2]| {
+            ArrayD::from_shape_vec(IxDyn(&shape), a.into_iter().map(T::from_f64c).collect())
+                .expect("shape")
+        };
+        if need[2] {
+            out[2] = Some(tensor(clip.into_flattened(), [v, 4]));
+        }
+        if need.get(3) == Some(&true) {
+            out[3] = Some(tensor(world.into_flattened(), [v, 3]));
+        }
+        if need.get(4) == Some(&true) {
+            out[4] = Some(tensor(rows.into_flattened(), [n_rows, 3]));
+        }
+        Ok(out)
     }
 }

@@ -38,6 +38,9 @@ pub struct Surface<'t, T: Real> {
     /// Diffuse reflectance `[N, 3]` or `[3]` (the material's `kd` times texture or vertex
     /// colour).
     pub albedo: Var<'t, T>,
+    /// Visibility of the directional lights, then the point lights `[N, L]` (shadows: each
+    /// light's term is scaled by its column), or `None` for unshadowed lights.
+    pub visibility: Option<Var<'t, T>>,
 }
 
 /// The reflection model of `material` (Lambert, Phong or Blinn-Phong, see the module docs)
@@ -114,6 +117,17 @@ fn check_inputs<'t, T: Real>(
         three("a light position", p.position)?;
         three("a point colour", p.color)?;
     }
+    if let Some(v) = surface.visibility {
+        let l = lights.directional.len() + lights.point.len();
+        let s = v.shape();
+        if s != [n, l] {
+            return Err(AutodiffError::shape(
+                OP,
+                &[&s],
+                format!("visibility must be [{n}, {l}] (fragments, directional and point lights)"),
+            ));
+        }
+    }
     Ok(())
 }
 
@@ -139,7 +153,7 @@ pub fn shade_composed<'t, T: Real>(
     }
     let specular = material.model != Reflectance::Lambert;
     let v = (eye.reshape(&[3]) - surface.position).normalize(eps);
-    let mut add_light = |l: Var<'t, T>, color: Var<'t, T>| {
+    let mut add_light = |l: Var<'t, T>, color: Var<'t, T>, k: usize| {
         // l: [3] or [N, 3], unit, towards the light.
         let ndl = (n * l).sum_axes(&[-1], true);
         let mut refl = surface.albedo * ndl.relu();
@@ -156,15 +170,20 @@ pub fn shade_composed<'t, T: Real>(
             let spec = base.relu().pow(material.shininess) * ndl.heaviside();
             refl = refl + material.ks * spec;
         }
-        add(refl * color.reshape(&[3]));
+        let term = refl * color.reshape(&[3]);
+        add(match surface.visibility {
+            Some(vis) => term * vis.slice(-1, k, k + 1),
+            None => term,
+        });
     };
-    for d in &lights.directional {
+    for (k, d) in lights.directional.iter().enumerate() {
         let l = (-d.direction.reshape(&[3])).normalize(eps);
-        add_light(l, d.color);
+        add_light(l, d.color, k);
     }
-    for p in &lights.point {
+    let nd = lights.directional.len();
+    for (k, p) in lights.point.iter().enumerate() {
         let l = (p.position.reshape(&[3]) - surface.position).normalize(eps);
-        add_light(l, p.color);
+        add_light(l, p.color, nd + k);
     }
     // `[N, 3]` also when no term varies by fragment (ambient light only, constant `ka`).
     let nrows = surface.position.shape().first().copied().unwrap_or(0);

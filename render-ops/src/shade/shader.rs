@@ -103,6 +103,9 @@ pub struct FragmentInputs<'t, T: Real> {
     pub attributes: Vec<(String, Var<'t, T>)>,
     /// The packed fragments (face ids, pixels).
     pub fragments: Arc<Fragments<T>>,
+    /// Light visibility `[N, L]` where the visibility method traces shadow rays
+    /// ([`Rasterized::visibility`]); pass it to [`crate::shade::Surface::visibility`].
+    pub visibility: Option<Var<'t, T>>,
 }
 
 /// An op that only reports an error (poisons its output).
@@ -160,6 +163,7 @@ impl<'t, T: Real> FragmentInputs<'t, T> {
             position: self.position,
             normal: self.normal,
             albedo,
+            visibility: self.visibility,
         }
     }
 }
@@ -322,6 +326,7 @@ pub fn fragment_inputs<'t, T: Real>(
         view_depth: r.view_depth,
         attributes,
         fragments: r.fragments.clone(),
+        visibility: r.visibility,
     };
     // Surface shape errors now rather than inside the shader.
     out.view_dir.value()?;

@@ -76,13 +76,15 @@ impl<'t, T: Real> SceneShading<'t, T> {
 
     /// Colours `[N, 3]` of `N` surface points (fragments or vertices): world positions
     /// `[N, 3]`, normals `[N, 3]` (any length, normalised inside), albedo `[N, 3]` or `[3]`,
-    /// seen from `eye` `[3]`.
+    /// seen from `eye` `[3]`; `visibility` `[N, L]` shadows the directional and point lights
+    /// ([`Surface::visibility`]; SH lighting is unshadowed).
     pub fn apply(
         &self,
         position: Var<'t, T>,
         normal: Var<'t, T>,
         albedo: Var<'t, T>,
         eye: Var<'t, T>,
+        visibility: Option<Var<'t, T>>,
     ) -> Result<Var<'t, T>, RenderError> {
         let out = match self.shading {
             Shading::None => albedo,
@@ -97,6 +99,7 @@ impl<'t, T: Real> SceneShading<'t, T> {
                     position,
                     normal,
                     albedo,
+                    visibility,
                 };
                 shade(&surface, m, &self.lights, eye.reshape(&[3]))
             }

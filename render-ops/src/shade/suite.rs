@@ -65,6 +65,7 @@ fn reflection<'t, T: Real>(t: &'t Tape<T>, v: &[Var<'t, T>], model: Reflectance)
         position: v[0],
         normal,
         albedo: v[2],
+        visibility: None,
     };
     let mut m = Material::constant(t, model, [0.0; 3], 8.0);
     m.ks = v[3];

@@ -252,6 +252,7 @@ pub fn soft_fragments<'t, T: Real>(
             bary: outs[0],
             depth: outs[1],
             view_depth: outs[2],
+            visibility: None,
         },
         prob: outs[3],
     })

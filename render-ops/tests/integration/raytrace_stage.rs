@@ -90,7 +90,7 @@ fn vertex_colours<T: Real>(fused: bool, s: &RaytraceSettings, w: &[f64]) -> [Vec
         let lights = tape.constant(ArrayD::zeros(IxDyn(&[0, 3])));
         raytrace(clip, p, normals, col, lights, faces, s).unwrap()
     } else {
-        let t = raytrace_fragments(clip, faces, s).unwrap();
+        let t = raytrace_fragments(clip, faces, s, None).unwrap();
         let c = interpolate(col, &t.raster).unwrap();
         let band = interpolate(col, &t.band).unwrap();
         let bg = s.background.map(T::from_f64c);
@@ -347,16 +347,16 @@ fn traced_fragments_reject_bad_inputs() {
     let tape = Tape::<f64>::new();
     let s = settings(8, 1);
     let clip3 = tape.constant(ArrayD::zeros(IxDyn(&[3, 3])));
-    assert!(raytrace_fragments(clip3, Arc::new(vec![[0, 1, 2]]), &s).is_err());
+    assert!(raytrace_fragments(clip3, Arc::new(vec![[0, 1, 2]]), &s, None).is_err());
     let mut c = ArrayD::zeros(IxDyn(&[3, 4]));
     c[[0, 3]] = f64::NAN;
-    let e = raytrace_fragments(tape.constant(c), Arc::new(vec![[0, 1, 2]]), &s)
+    let e = raytrace_fragments(tape.constant(c), Arc::new(vec![[0, 1, 2]]), &s, None)
         .err()
         .unwrap();
     assert!(e.to_string().contains("clip"), "{e}");
     let ok = tape.constant(ArrayD::ones(IxDyn(&[3, 4])));
-    assert!(raytrace_fragments(ok, Arc::new(vec![[0, 1, 3]]), &s).is_err());
-    let t = raytrace_fragments(ok, Arc::new(vec![[0, 1, 2]]), &s).unwrap();
+    assert!(raytrace_fragments(ok, Arc::new(vec![[0, 1, 3]]), &s, None).is_err());
+    let t = raytrace_fragments(ok, Arc::new(vec![[0, 1, 2]]), &s, None).unwrap();
     let band = tape.constant(ArrayD::zeros(IxDyn(&[t.band.fragments.len() + 1, 3])));
     let col = tape.constant(ArrayD::zeros(IxDyn(&[t.raster.fragments.len(), 3])));
     assert!(blend_traced(col, band, &t, ok, &[0.0; 3]).is_err());
@@ -422,11 +422,101 @@ fn textured_scenes_render_through_the_stages() {
         assert!(loss.is_finite() && g.iter().all(|x| x.is_finite()));
         assert!(g.iter().any(|x| x.abs() > 1e-6), "{input:?}");
     }
-    // A shadow-casting light with a texture: a typed error naming the method.
-    let dirl = r#"[{"type": "directional", "direction": [0, 0, -1], "color": [1, 1, 1]}]"#;
-    let sc = textured_scene(&dir, dirl, "raytrace", size, 4);
+    // An area light with a texture: a typed error naming the method.
+    let area = r#"[{"type": "area", "corner": [-0.3, 2, -0.3], "edge_u": [0.6, 0, 0],
+        "edge_v": [0, 0, 0.6], "radiance": [1, 1, 1]}]"#;
+    let sc = textured_scene(&dir, area, "raytrace", size, 4);
     let tape = Tape::new();
     let e = sc.render(&sc.vars(&tape, Wrt::default())).unwrap_err();
     assert!(e.to_string().contains("raytrace"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A ground plane and a quad occluder above it (in view), with uvs; `texture` names a white
+/// texture or none; Lambert under an ambient, a directional and a point light.
+fn shadow_scene(dir: &std::path::Path, texture: bool) -> render_ops::Scene<f64> {
+    let mut m = Mesh::new(
+        vec![
+            [-2.0, 0.0, -2.0],
+            [2.0, 0.0, -2.0],
+            [2.0, 0.0, 2.0],
+            [-2.0, 0.0, 2.0],
+            [-0.6, 0.9, -0.3],
+            [0.1, 0.9, -0.25],
+            [0.05, 0.9, 0.3],
+            [-0.55, 0.95, 0.25],
+        ],
+        vec![[0, 2, 1], [0, 3, 2], [4, 6, 5], [4, 7, 6]],
+    );
+    m.uvs = m
+        .positions
+        .iter()
+        .map(|p| [0.5 + 0.2 * p[0], 0.5 + 0.2 * p[2]])
+        .collect();
+    m.uv_faces = m.faces.clone();
+    m.colors = m
+        .positions
+        .iter()
+        .map(|p| [0.8, 0.6 + 0.1 * p[1], 0.5])
+        .collect();
+    render_ops::obj::write_obj(dir.join("m.obj"), &m).unwrap();
+    render_ops::io::write_png(
+        dir.join("white.png"),
+        &ndarray::Array3::from_elem((2, 2, 3), 1.0),
+    )
+    .unwrap();
+    let json = format!(
+        r#"{{"mesh": "m.obj", "texture": {},
+        "camera": {{"eye": [0.3, 3, 2.2], "at": [0, 0, 0], "up": [0, 1, 0], "fov_y_deg": 45,
+                   "near": 0.1, "far": 100}},
+        "image": {{"width": 16, "height": 16, "background": [0.1, 0.1, 0.1]}},
+        "lights": [{{"type": "ambient", "color": [0.2, 0.2, 0.2]}},
+                   {{"type": "directional", "direction": [0.3, -1, -0.2], "color": [0.8, 0.8, 0.8]}},
+                   {{"type": "point", "position": [0.4, 2.5, 0.6], "color": [0.5, 0.4, 0.3]}}],
+        "material": {{"shading": "lambert", "kd": [0.9, 0.8, 0.7]}},
+        "raster": {{"method": "raytrace", "spp": 4, "seed": 3, "edge_samples": 1024,
+                   "shadow_edge_samples": 4096}}}}"#,
+        if texture { "\"white.png\"" } else { "null" }
+    );
+    render_ops::Scene::from_json(&json, dir, "scene.json").unwrap()
+}
+
+/// With a white texture, a lit scene through the fragment stages (shadows by the stage's
+/// visibility, shadow-edge terms in `blend_traced`) equals the fused op on the same scene
+/// with vertex colours: the image, and the gradients with respect to positions and lights.
+#[test]
+fn composed_shadows_equal_the_fused_op() {
+    use render_ops::pipeline::SceneInput;
+    let dir = crate::common::scenes::temp_dir("raytrace-shadows");
+    let fused = shadow_scene(&dir, false);
+    let composed = shadow_scene(&dir, true);
+    let (a, b) = (
+        fused.render_image().unwrap(),
+        composed.render_image().unwrap(),
+    );
+    let (a, b): (Vec<f64>, Vec<f64>) = (a.iter().copied().collect(), b.iter().copied().collect());
+    assert!(
+        max_abs_diff(&a, &b) <= 1e-12,
+        "image {}",
+        max_abs_diff(&a, &b)
+    );
+    // Some pixels in shadow: the plane's lit and shadowed values differ.
+    let target = ArrayD::from_elem(IxDyn(&[16, 16, 4]), 0.3);
+    for input in [SceneInput::Positions, SceneInput::Lights] {
+        let (la, ga) = fused.image_loss_grad(target.clone(), "t", input).unwrap();
+        let (lb, gb) = composed
+            .image_loss_grad(target.clone(), "t", input)
+            .unwrap();
+        assert!(
+            (la - lb).abs() <= 1e-10 * la.abs(),
+            "{input:?}: loss {la} {lb}"
+        );
+        let (ga, gb): (Vec<f64>, Vec<f64>) =
+            (ga.iter().copied().collect(), gb.iter().copied().collect());
+        let scale = max_abs(&ga);
+        assert!(scale > 0.0, "{input:?}: no gradient");
+        let d = max_abs_diff(&ga, &gb);
+        assert!(d <= 1e-9 * scale, "{input:?}: {d} against {scale}");
+    }
     std::fs::remove_dir_all(&dir).ok();
 }

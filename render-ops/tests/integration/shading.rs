@@ -213,6 +213,7 @@ fn zero_length_normals_are_safe() {
         position: pos,
         normal,
         albedo,
+        visibility: None,
     };
     let coeffs = tape.leaf(Rng::new(2).normal_tensor(&[9, 3]));
     let mut total = sh_shade(normal, albedo, coeffs).sum();
@@ -308,6 +309,7 @@ fn phong_with<'t>(
         position: v[0],
         normal: v[1],
         albedo: v[2],
+        visibility: None,
     };
     let mat = Material {
         model,
@@ -508,6 +510,7 @@ fn shading_rejects_bad_shapes() {
         position: p,
         normal: n,
         albedo: a,
+        visibility: None,
     };
     let e = err(shade(
         &surf(tape.constant(ArrayD::zeros(IxDyn(&[3]))), rows(4), rows(4)),
