@@ -69,7 +69,12 @@ fn parse_method(name: &str) -> Result<Method, CliError> {
     let m = Method::from_name(name).ok_or_else(|| {
         CliError::Message(format!(
             "--method '{name}': unknown raster method; one of {}",
-            Method::ALL.map(|m| m.name()).join(", ")
+            Method::ALL
+                .into_iter()
+                .chain(Method::RAY)
+                .map(|m| m.name())
+                .collect::<Vec<_>>()
+                .join(", ")
         ))
     })?;
     Ok(m)

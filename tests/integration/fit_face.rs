@@ -144,10 +144,11 @@ fn fit_is_deterministic_across_thread_counts() {
 fn every_method_fits_a_few_steps_and_lowers_the_loss() {
     // Stage 2 only (landmarks and the photometric term, every parameter), 4 steps at 32 px:
     // each method's render and gradient run, and the loss falls; for both shipped models (ICT's
-    // photometric term carries the photometric-weight channel through every method).
+    // photometric term carries the photometric-weight channel through every method), the ray
+    // tracer included (through its fragment stages).
     for m in [model(), models::ict::load_ict().unwrap()] {
         let s = fit::synthesize(&m, &SynthOptions::new(32, 32, 0)).unwrap();
-        for method in Method::ALL {
+        for method in Method::ALL.into_iter().chain(Method::RAY) {
             let mut o = FitOptions::new(32, 32, 4);
             o.render.method = method;
             (o.landmark_iters, o.full_iters) = (0, 4);

@@ -8,8 +8,10 @@ use std::sync::Arc;
 use autodiff::{Real, Tape, Tensor};
 use ndarray::{ArrayD, IxDyn};
 use render_ops::camera::Camera;
-use render_ops::methods::{render_fragments, MethodSettings};
-use render_ops::raytrace::{blend_traced, raytrace, raytrace_fragments, RaytraceSettings};
+use render_ops::methods::{render_fragments, render_fragments_lit, MethodSettings};
+use render_ops::raytrace::{
+    blend_traced, raytrace, raytrace_fragments, LightKind, RaytraceSettings, ShadowInputs,
+};
 use render_ops::shade::{fragment_inputs, MeshAttributes};
 use render_ops::texture::{Filter, Sampler, Texture, Wrap};
 use render_ops::Method;
@@ -356,6 +358,25 @@ fn traced_fragments_reject_bad_inputs() {
     assert!(e.to_string().contains("clip"), "{e}");
     let ok = tape.constant(ArrayD::ones(IxDyn(&[3, 4])));
     assert!(raytrace_fragments(ok, Arc::new(vec![[0, 1, 3]]), &s, None).is_err());
+    // Shadow inputs: world and light rows of the kinds' shapes; no area lights; only the
+    // ray tracer casts shadows.
+    let faces = Arc::new(vec![[0, 1, 2]]);
+    let world = tape.constant(ArrayD::ones(IxDyn(&[3, 3])));
+    let shadows = |kinds: Vec<LightKind>, rows: usize| ShadowInputs {
+        world,
+        lights: tape.constant(ArrayD::ones(IxDyn(&[rows, 3]))),
+        kinds,
+    };
+    let dir = vec![LightKind::Directional];
+    assert!(raytrace_fragments(ok, faces.clone(), &s, Some(shadows(dir.clone(), 2))).is_ok());
+    let e = raytrace_fragments(ok, faces.clone(), &s, Some(shadows(dir.clone(), 3)));
+    assert!(e.err().unwrap().to_string().contains("lights"));
+    let area = vec![LightKind::Area];
+    let e = raytrace_fragments(ok, faces.clone(), &s, Some(shadows(area, 4)));
+    assert!(e.err().unwrap().to_string().contains("area"));
+    let hard = MethodSettings::new(Method::Hard, 8, 8);
+    let e = render_fragments_lit(ok, faces, &hard, Some(shadows(dir, 2)), &mut |r| Ok(r.bary));
+    assert!(e.err().unwrap().to_string().contains("shadow"));
     let t = raytrace_fragments(ok, Arc::new(vec![[0, 1, 2]]), &s, None).unwrap();
     let band = tape.constant(ArrayD::zeros(IxDyn(&[t.band.fragments.len() + 1, 3])));
     let col = tape.constant(ArrayD::zeros(IxDyn(&[t.raster.fragments.len(), 3])));
