@@ -182,7 +182,8 @@ fn visibility_columns(kinds: &[LightKind]) -> Vec<usize> {
 /// directional and point lights, whose visibility each fragment then carries
 /// ([`Rasterized::visibility`], by shadow rays as the fused op casts them). `width`, `height`,
 /// `spp`, `seed`, `near`, `far`, `shadows` and the edge sample counts are read; the settings'
-/// own `lights` are replaced by `shadows.kinds`; shading belongs to the shader.
+/// own `lights` are replaced by `shadows.kinds`; shading belongs to the shader. The band is
+/// empty when neither `clip` nor the shadow inputs need a gradient (a forward-only render).
 ///
 /// # Errors
 /// `clip` not `[V, 4]`, `world` not `[V, 3]`, light rows not those of `kinds`, non-finite
@@ -269,27 +270,29 @@ pub fn raytrace_fragments<'t, T: Real>(
             })
         })
         .collect();
-    let edges = Edges::new(&sc);
-    let n_primary = if edges.primary.is_empty() {
-        0
-    } else {
-        s.primary_edge_samples
+    // The edge samples only serve gradients: none when no geometry input asks for one.
+    let wants = clip.requires_grad()
+        || shadows
+            .as_ref()
+            .is_some_and(|sh| sh.world.requires_grad() || sh.lights.requires_grad());
+    let edges = wants.then(|| Edges::new(&sc));
+    let count = |cdf_empty: fn(&Edges) -> bool, n: usize| match &edges {
+        Some(e) if !cdf_empty(e) => n,
+        _ => 0,
     };
-    let n_shadow = if edges.shadow.is_empty() {
-        0
-    } else {
-        s.shadow_edge_samples
-    };
+    let n_primary = count(|e| e.primary.is_empty(), s.primary_edge_samples);
+    let n_shadow = count(|e| e.shadow.is_empty(), s.shadow_edge_samples);
     // Per edge sample (primary, then shadow): its point, pixel and side hits; then the band in
     // pixel order (stable in the sample index, so the order is fixed).
     let placed: Vec<Option<(EdgeKind, usize, [Option<Frag>; 2])>> = (0..n_primary + n_shadow)
         .into_par_iter()
         .map(|j| {
+            let edges = edges.as_ref()?;
             let (kind, u, a) = if j < n_primary {
-                let (ep, _) = sc.primary_edge_point(j, &edges)?;
+                let (ep, _) = sc.primary_edge_point(j, edges)?;
                 (EdgeKind::Primary(ep), ep.u, ep.a)
             } else {
-                let (sp, _) = sc.shadow_edge_point(j - n_primary, &edges)?;
+                let (sp, _) = sc.shadow_edge_point(j - n_primary, edges)?;
                 (EdgeKind::Shadow(sp), sp.u, sp.a)
             };
             let p = sc.pixel(u)?;

@@ -378,6 +378,17 @@ fn traced_fragments_reject_bad_inputs() {
     let e = render_fragments_lit(ok, faces, &hard, Some(shadows(dir, 2)), &mut |r| Ok(r.bary));
     assert!(e.err().unwrap().to_string().contains("shadow"));
     let t = raytrace_fragments(ok, Arc::new(vec![[0, 1, 2]]), &s, None).unwrap();
+    // Edge samples only when the geometry asks for a gradient.
+    let tri = ArrayD::from_shape_vec(
+        IxDyn(&[3, 4]),
+        vec![-0.5, -0.5, 0.5, 1.0, 0.5, -0.5, 0.5, 1.0, 0.0, 0.5, 0.5, 1.0],
+    )
+    .unwrap();
+    for wants in [false, true] {
+        let c = tape.var(tri.clone(), wants);
+        let b = raytrace_fragments(c, Arc::new(vec![[0, 1, 2]]), &s, None).unwrap();
+        assert_eq!(!b.band.fragments.is_empty(), wants);
+    }
     let band = tape.constant(ArrayD::zeros(IxDyn(&[t.band.fragments.len() + 1, 3])));
     let col = tape.constant(ArrayD::zeros(IxDyn(&[t.raster.fragments.len(), 3])));
     assert!(blend_traced(col, band, &t, ok, &[0.0; 3]).is_err());
