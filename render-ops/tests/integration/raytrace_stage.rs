@@ -381,7 +381,9 @@ fn traced_fragments_reject_bad_inputs() {
     // Edge samples only when the geometry asks for a gradient.
     let tri = ArrayD::from_shape_vec(
         IxDyn(&[3, 4]),
-        vec![-0.5, -0.5, 0.5, 1.0, 0.5, -0.5, 0.5, 1.0, 0.0, 0.5, 0.5, 1.0],
+        vec![
+            -0.5, -0.5, 0.5, 1.0, 0.5, -0.5, 0.5, 1.0, 0.0, 0.5, 0.5, 1.0,
+        ],
     )
     .unwrap();
     for wants in [false, true] {
