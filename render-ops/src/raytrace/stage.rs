@@ -57,7 +57,8 @@ use super::RaytraceSettings;
 pub struct TracedFragments<'t, T: Real> {
     /// One fragment per pixel sample that hits a face, in sample order within each pixel.
     pub raster: Rasterized<'t, T>,
-    /// The hits of the primary-edge samples' side points, under the pixel of each edge point.
+    /// The hits of the edge samples' side points (primary edges, shadow boundaries), under the
+    /// pixel of each edge point.
     pub band: Rasterized<'t, T>,
     /// Each sample fragment's weight in its pixel, `1 / spp` (a constant).
     pub weight: Var<'t, T>,
