@@ -67,7 +67,17 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
         "rasterize"
     }
     fn forward(&mut self, _inputs: &[TensorView<'_, T>]) -> AdResult<Vec<Tensor<T>>> {
-        Ok(fragment_values(&self.fragments))
+        let f = &self.fragments;
+        let n = f.face.len();
+        // The three copies in one parallel region (they are the op's only work).
+        let (bary, (depth, vdepth)) = rayon::join(
+            || par_copy(f.bary.as_flattened()),
+            || rayon::join(|| par_copy(&f.depth), || par_copy(&f.view_depth)),
+        );
+        let bary = ArrayD::from_shape_vec(IxDyn(&[n, 3]), bary).expect("n x 3");
+        let depth = ArrayD::from_shape_vec(IxDyn(&[n]), depth).expect("n");
+        let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), vdepth).expect("n");
+        Ok(vec![bary, depth, vdepth])
     }
     fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
@@ -104,21 +114,6 @@ impl<T: Real> Op<T> for RasterizeOp<T> {
                 .expect("v x 4"),
         )])
     }
-}
-
-/// A rasterization's barycentrics `[N, 3]`, NDC depth `[N]` and view depth `[N]` as tensors
-/// (the outputs of a stage that yields fragments).
-fn fragment_values<T: Real>(f: &Fragments<T>) -> Vec<Tensor<T>> {
-    let n = f.face.len();
-    // The three copies in one parallel region (they are the op's only work).
-    let (bary, (depth, vdepth)) = rayon::join(
-        || par_copy(f.bary.as_flattened()),
-        || rayon::join(|| par_copy(&f.depth), || par_copy(&f.view_depth)),
-    );
-    let bary = ArrayD::from_shape_vec(IxDyn(&[n, 3]), bary).expect("n x 3");
-    let depth = ArrayD::from_shape_vec(IxDyn(&[n]), depth).expect("n");
-    let vdepth = ArrayD::from_shape_vec(IxDyn(&[n]), vdepth).expect("n");
-    vec![bary, depth, vdepth]
 }
 
 /// The output gradient `i` of an op's backward as `f64` values in standard order.

@@ -234,17 +234,19 @@ pub(super) struct Scene<'a> {
     scale: f64,
 }
 
-/// Per-chunk gradient accumulators (dense per vertex; only the wanted inputs allocated).
-struct Acc {
-    clip: Vec<[f64; 4]>,
-    world: Vec<V3>,
+/// Per-chunk gradient accumulators (dense per vertex; only the wanted inputs allocated): clip,
+/// world, normals, albedo, light rows.
+pub(super) struct Acc {
+    pub(super) clip: Vec<[f64; 4]>,
+    pub(super) world: Vec<V3>,
     normals: Vec<V3>,
     albedo: Vec<V3>,
-    rows: Vec<V3>,
+    pub(super) rows: Vec<V3>,
 }
 
 impl Acc {
-    fn new(v: usize, n_rows: usize, need: &[bool]) -> Self {
+    /// Accumulators for the inputs `need` marks (clip, world, normals, albedo, light rows).
+    pub(super) fn new(v: usize, n_rows: usize, need: &[bool]) -> Self {
         let n = |i: usize, len: usize| if need[i] { len } else { 0 };
         Acc {
             clip: vec![[0.0; 4]; n(0, v)],
@@ -252,6 +254,33 @@ impl Acc {
             normals: vec![[0.0; 3]; n(2, v)],
             albedo: vec![[0.0; 3]; n(3, v)],
             rows: vec![[0.0; 3]; n(4, n_rows)],
+        }
+    }
+
+    /// Adds the gradients of primary-edge sample `ep` for a two-sided difference whose product
+    /// with the output gradient is `g_delta`.
+    pub(super) fn primary_edge(&mut self, ep: &EdgePoint, g_delta: f64) {
+        if g_delta == 0.0 || self.clip.is_empty() {
+            return;
+        }
+        let g = ep.clip_grads(g_delta);
+        add_to(&mut self.clip, ep.v[0] as usize, g[0]);
+        add_to(&mut self.clip, ep.v[1] as usize, g[1]);
+    }
+
+    /// Adds the gradients of shadow-edge sample `sp` (light row, world and clip positions) for
+    /// a two-sided difference whose product with the output gradient is `g_delta`.
+    pub(super) fn shadow_edge(&mut self, sp: &ShadowEdgePoint, g_delta: f64) {
+        if g_delta == 0.0 {
+            return;
+        }
+        let g = sp.grads(g_delta);
+        add_to(&mut self.rows, g.row.0, g.row.1);
+        for (v, x) in g.world {
+            add_to(&mut self.world, v as usize, x);
+        }
+        for (v, x) in g.clip {
+            add_to(&mut self.clip, v as usize, x);
         }
     }
 }
@@ -664,15 +693,9 @@ impl<'a> Scene<'a> {
         let Some((ep, ctr)) = self.primary_edge_point(j, edges) else {
             return;
         };
-        let Some((p, delta)) = self.two_sided(ep.u, ep.a, ctr) else {
-            return;
-        };
-        if acc.clip.is_empty() {
-            return;
+        if let Some((p, delta)) = self.two_sided(ep.u, ep.a, ctr) {
+            acc.primary_edge(&ep, dot4(gimg[p], delta));
         }
-        let g = ep.clip_grads(dot4(gimg[p], delta));
-        add_to(&mut acc.clip, ep.v[0] as usize, g[0]);
-        add_to(&mut acc.clip, ep.v[1] as usize, g[1]);
     }
 
     /// Where shadow-edge sample `j` of a point or directional light falls in the image
@@ -758,20 +781,8 @@ impl<'a> Scene<'a> {
         let Some((sp, ctr)) = self.shadow_edge_point(j, edges) else {
             return;
         };
-        let Some((px, delta)) = self.two_sided(sp.u, sp.a, ctr) else {
-            return;
-        };
-        let g_delta = dot4(gimg[px], delta);
-        if g_delta == 0.0 {
-            return;
-        }
-        let g = sp.grads(g_delta);
-        add_to(&mut acc.rows, g.row.0, g.row.1);
-        for (v, x) in g.world {
-            add_to(&mut acc.world, v as usize, x);
-        }
-        for (v, x) in g.clip {
-            add_to(&mut acc.clip, v as usize, x);
+        if let Some((px, delta)) = self.two_sided(sp.u, sp.a, ctr) {
+            acc.shadow_edge(&sp, dot4(gimg[px], delta));
         }
     }
 }

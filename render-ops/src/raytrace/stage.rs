@@ -38,7 +38,6 @@ use std::sync::Arc;
 use autodiff::{AutodiffError, BackwardCtx, Op, Real, Result as AdResult, Tensor, TensorView, Var};
 use ndarray::{ArrayD, IxDyn};
 use rayon::prelude::*;
-use smallvec::SmallVec;
 
 use crate::blend::blend_weighted;
 use crate::error::RenderError;
@@ -48,7 +47,7 @@ use crate::shade::{acc3, cross3, scale3};
 
 use super::edges::face_normal;
 use super::op::{
-    check_faces, check_inputs, rows, side_points, EdgePoint, Edges, Scene, ShadowEdgePoint,
+    check_faces, check_inputs, rows, side_points, Acc, EdgePoint, Edges, Scene, ShadowEdgePoint,
 };
 use super::shading::{LightKind, Shadow};
 use super::RaytraceSettings;
@@ -237,28 +236,32 @@ pub fn raytrace_fragments<'t, T: Real>(
     };
     let lights = sc.lights();
     // The visibility of each column's light from the surface point of a fragment.
-    let visibility = |fr: &Frag| -> SmallVec<[f64; 4]> {
+    // The shadow query of each column's light (the same from every point).
+    let queries: Vec<Shadow> = columns
+        .iter()
+        .map(|&li| {
+            let r = sc.light_rows[lights.offsets[li]];
+            match kinds[li] {
+                LightKind::Directional => Shadow::Along(scale3(r, -1.0)),
+                _ => Shadow::Toward(r),
+            }
+        })
+        .collect();
+    // The visibility of each column's light from the surface point of a fragment, into `out`.
+    let visibility = |fr: &Frag, out: &mut [T]| {
         let tri = faces[fr.1 as usize];
         let mut x = [0.0; 3];
         for (i, &vi) in tri.iter().enumerate() {
             acc3(&mut x, scale3(sc.world[vi as usize], fr.2[i]));
         }
         let ng = face_normal(&sc.world, &tri);
-        columns
-            .iter()
-            .map(|&li| {
-                let r = sc.light_rows[lights.offsets[li]];
-                let q = match kinds[li] {
-                    LightKind::Directional => Shadow::Along(scale3(r, -1.0)),
-                    _ => Shadow::Toward(r),
-                };
-                if sc.visible(x, ng, q) {
-                    1.0
-                } else {
-                    0.0
-                }
-            })
-            .collect()
+        for (o, &q) in out.iter_mut().zip(&queries) {
+            *o = if sc.visible(x, ng, q) {
+                T::one()
+            } else {
+                T::zero()
+            };
+        }
     };
     let (w, h, spp) = (s.width, s.height, s.spp);
     let samples: Vec<Frag> = (0..h)
@@ -327,10 +330,10 @@ pub fn raytrace_fragments<'t, T: Real>(
         let mut r = record_at(clip, Arc::new(f), faces.clone(), &rs, Some(ndc));
         if !columns.is_empty() {
             let l = columns.len();
-            let vis: Vec<T> = frags
-                .par_iter()
-                .flat_map_iter(|fr| visibility(fr).into_iter().map(T::from_f64c))
-                .collect();
+            let mut vis = vec![T::zero(); frags.len() * l];
+            vis.par_chunks_mut(l)
+                .zip(frags.par_iter())
+                .for_each(|(out, fr)| visibility(fr, out));
             let vis = ArrayD::from_shape_vec(IxDyn(&[frags.len(), l]), vis).expect("n x l");
             r.visibility = Some(tape.constant(vis));
         }
@@ -391,7 +394,8 @@ pub fn blend_traced<'t, T: Real>(
     Ok(image.tape().apply(op, &inputs))
 }
 
-/// Passes the image through; its backward adds the primary-edge terms to the clip positions.
+/// Passes the image through; its backward adds the edge terms: primary edges to the clip
+/// positions, shadow boundaries to the clip and world positions and the light rows.
 struct EdgeTermsOp {
     edges: Arc<Vec<EdgeSample>>,
     background: Vec<f64>,
@@ -439,57 +443,26 @@ impl<T: Real> Op<T> for EdgeTermsOp {
         // Dense accumulators, added in edge order (the same on any pool).
         let v = ctx.inputs[2].shape()[0];
         let n_rows = ctx.inputs.get(4).map_or(0, |l| l.shape()[0]);
-        let mut clip = vec![[0.0f64; 4]; if need[2] { v } else { 0 }];
-        let mut world = vec![[0.0f64; 3]; if need.get(3) == Some(&true) { v } else { 0 }];
-        let mut rows = vec![
-            [0.0f64; 3];
-            if need.get(4) == Some(&true) {
-                n_rows
-            } else {
-                0
-            }
-        ];
-        fn add<const N: usize>(acc: &mut [[f64; N]], i: usize, x: [f64; N]) {
-            if let Some(a) = acc.get_mut(i) {
-                for (a, x) in a.iter_mut().zip(x) {
-                    *a += x;
-                }
-            }
-        }
+        let wants = |i: usize| need.get(i) == Some(&true);
+        let mut acc = Acc::new(v, n_rows, &[wants(2), wants(3), false, false, wants(4)]);
         for (e, &gd) in self.edges.iter().zip(&g_delta) {
-            if gd == 0.0 {
-                continue;
-            }
-            match e.kind {
-                EdgeKind::Primary(ep) => {
-                    let gr = ep.clip_grads(gd);
-                    add(&mut clip, ep.v[0] as usize, gr[0]);
-                    add(&mut clip, ep.v[1] as usize, gr[1]);
-                }
-                EdgeKind::Shadow(sp) => {
-                    let gr = sp.grads(gd);
-                    add(&mut rows, gr.row.0, gr.row.1);
-                    for (vi, x) in gr.world {
-                        add(&mut world, vi as usize, x);
-                    }
-                    for (vi, x) in gr.clip {
-                        add(&mut clip, vi as usize, x);
-                    }
-                }
+            match &e.kind {
+                EdgeKind::Primary(ep) => acc.primary_edge(ep, gd),
+                EdgeKind::Shadow(sp) => acc.shadow_edge(sp, gd),
             }
         }
         let tensor = |a: Vec<f64>, shape: [usize; 2]| {
             ArrayD::from_shape_vec(IxDyn(&shape), a.into_iter().map(T::from_f64c).collect())
                 .expect("shape")
         };
-        if need[2] {
-            out[2] = Some(tensor(clip.into_flattened(), [v, 4]));
+        if wants(2) {
+            out[2] = Some(tensor(acc.clip.into_flattened(), [v, 4]));
         }
-        if need.get(3) == Some(&true) {
-            out[3] = Some(tensor(world.into_flattened(), [v, 3]));
+        if wants(3) {
+            out[3] = Some(tensor(acc.world.into_flattened(), [v, 3]));
         }
-        if need.get(4) == Some(&true) {
-            out[4] = Some(tensor(rows.into_flattened(), [n_rows, 3]));
+        if wants(4) {
+            out[4] = Some(tensor(acc.rows.into_flattened(), [n_rows, 3]));
         }
         Ok(out)
     }
