@@ -346,27 +346,35 @@ impl Bvh {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::raytrace::rng::{Counter, Stream};
 
-    fn soup(n: usize, seed: u64) -> (Vec<V3>, Vec<[u32; 3]>) {
+    /// `n` random triangles `[3f, 3f + 1, 3f + 2]`: triangle `f`'s vertices lie within
+    /// `size / 2` of `centre` per axis, `(centre, size) = place(numbers, f)`.
+    pub(crate) fn soup_around(
+        n: usize,
+        seed: u64,
+        mut place: impl FnMut(&mut Counter, usize) -> (V3, f64),
+    ) -> (Vec<V3>, Vec<[u32; 3]>) {
         let mut c = Counter::new(seed, Stream::Pixel, 0);
         let mut pos = Vec::new();
         let mut faces = Vec::new();
         for f in 0..n {
-            let centre = [
-                c.uniform() * 4.0 - 2.0,
-                c.uniform() * 4.0 - 2.0,
-                c.uniform() * 4.0 - 2.0,
-            ];
+            let (centre, size) = place(&mut c, f);
             for _ in 0..3 {
-                pos.push([0, 1, 2].map(|k| centre[k] + 0.3 * (c.uniform() - 0.5)));
+                pos.push([0, 1, 2].map(|k| centre[k] + size * (c.uniform() - 0.5)));
             }
             let b = 3 * f as u32;
             faces.push([b, b + 1, b + 2]);
         }
         (pos, faces)
+    }
+
+    fn soup(n: usize, seed: u64) -> (Vec<V3>, Vec<[u32; 3]>) {
+        soup_around(n, seed, |c, _| {
+            ([0, 1, 2].map(|_| c.uniform() * 4.0 - 2.0), 0.3)
+        })
     }
 
     fn brute(pos: &[V3], faces: &[[u32; 3]], r: &Ray) -> Option<Hit> {

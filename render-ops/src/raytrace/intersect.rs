@@ -48,12 +48,14 @@ impl Ray {
         if dir[kz] < 0.0 {
             std::mem::swap(&mut kx, &mut ky);
         }
+        let inv_dir = dir.map(|d| 1.0 / d);
+        let sz = inv_dir[kz];
         Ray {
             origin,
             dir,
-            inv_dir: dir.map(|d| 1.0 / d),
+            inv_dir,
             k: [kx, ky, kz],
-            shear: [dir[kx] / dir[kz], dir[ky] / dir[kz], 1.0 / dir[kz]],
+            shear: [dir[kx] * sz, dir[ky] * sz, sz],
         }
     }
 

@@ -11,7 +11,8 @@
 //! linear map of view space for a perspective camera) the ray of NDC point `(x, y)` is
 //! `q = t (x, y, 1)` and `t` is the view depth, so hits are those of the rasterizer (same
 //! barycentrics, near and far planes) and gradients reach the camera through the clip
-//! positions. Shading happens in world space ([`shading`]: Lambert, Phong, Blinn-Phong, SH),
+//! positions. All camera rays leave the origin of that space, so their hits come from a
+//! screen grid ([`grid`]) instead of a tree walk: the same hits as a BVH's. Shading happens in world space ([`shading`]: Lambert, Phong, Blinn-Phong, SH),
 //! with one shadow ray per light and sample (an area light: one uniform area sample per pixel
 //! sample) against a BVH of the world-space triangles ([`bvh`], watertight tests of
 //! [`intersect`]). SH lighting is unshadowed. The emitter of an area light is not visible to the
@@ -59,6 +60,7 @@
 
 pub mod bvh;
 pub mod edges;
+pub mod grid;
 pub mod intersect;
 pub mod rng;
 pub mod shading;

@@ -14,8 +14,9 @@ use crate::shade::{acc3, add3, cross3, dot3, scale3, sub3};
 
 use super::bvh::Bvh;
 use super::edges::{face_normal, is_silhouette, mesh_edges, plane_hit, Cdf, Edge, Viewer};
+use super::grid::ScreenGrid;
 use super::intersect::{Hit, Ray, V3};
-use super::rng::{Counter, Stream};
+use super::rng::{stream_key, Counter, Stream};
 use super::shading::{LightKind, LightSet, Reflection, ShadeGrad, Shadow};
 
 /// Most pixels of one render (as the rasterizer's limit).
@@ -228,10 +229,13 @@ pub(super) struct Scene<'a> {
     normals: Vec<V3>,
     albedo: Vec<V3>,
     pub(super) light_rows: Vec<V3>,
-    primary: Bvh,
+    primary: ScreenGrid,
     shadow: Option<Bvh>,
     /// Scale of the world coordinates (shadow-ray offsets).
     scale: f64,
+    /// Strata per pixel ([`RaytraceSettings::strata`]) and the pixel samples' stream key.
+    strata: (usize, usize),
+    pixel_key: u64,
 }
 
 /// Per-chunk gradient accumulators (dense per vertex; only the wanted inputs allocated): clip,
@@ -360,7 +364,7 @@ impl<'a> Scene<'a> {
                 )
             });
         let (primary, shadow) = rayon::join(
-            || Bvh::new(&q, faces),
+            || ScreenGrid::new(&q, faces, s.width, s.height, s.near),
             || lit.then(|| Bvh::new(&world, faces)),
         );
         let scale = world.iter().flatten().fold(1.0f64, |m, x| m.max(x.abs()));
@@ -376,6 +380,8 @@ impl<'a> Scene<'a> {
             primary,
             shadow,
             scale,
+            strata: s.strata(),
+            pixel_key: stream_key(s.seed, Stream::Pixel),
         }
     }
 
@@ -383,10 +389,10 @@ impl<'a> Scene<'a> {
     /// sample's stratum (`sx x sy` strata per pixel), the counter left at the sample's next
     /// dimension (the area lights' samples).
     pub(super) fn sample(&self, pix: usize, k: usize) -> ([f64; 2], Counter) {
-        let (sx, sy) = self.s.strata();
+        let (sx, sy) = self.strata;
         let w = self.s.width;
         let (r, c) = (pix / w, pix % w);
-        let mut ctr = Counter::new(self.s.seed, Stream::Pixel, (pix * self.s.spp + k) as u64);
+        let mut ctr = Counter::at(self.pixel_key, (pix * self.s.spp + k) as u64);
         let u = [
             c as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
             r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
@@ -412,7 +418,7 @@ impl<'a> Scene<'a> {
         let [x, y] = self.ndc(u);
         let dir = [x, y, 1.0];
         let r = Ray::new([0.0; 3], dir);
-        Some((self.primary.closest(&r, self.s.near, self.s.far)?, dir))
+        Some((self.primary.closest(&r, u, self.s.near, self.s.far)?, dir))
     }
 
     /// The primary hit through pixel point `u`.
@@ -426,13 +432,26 @@ impl<'a> Scene<'a> {
             }
             o
         };
+        // Unlit (`shading: none`, no lights): the colour is the albedo, and nothing reads the
+        // point or the normals.
+        let unlit =
+            self.s.reflection.shading == crate::scene::Shading::None && self.s.lights.is_empty();
+        let (x, nraw, ng) = if unlit {
+            ([0.0; 3], [0.0; 3], [0.0; 3])
+        } else {
+            (
+                lerp(&self.world),
+                lerp(&self.normals),
+                face_normal(&self.world, &tri),
+            )
+        };
         Some(Surface {
             face: h.face,
             bary: h.bary,
-            x: lerp(&self.world),
-            nraw: lerp(&self.normals),
+            x,
+            nraw,
             albedo: lerp(&self.albedo),
-            ng: face_normal(&self.world, &tri),
+            ng,
             dir,
         })
     }

@@ -28,6 +28,11 @@ fn mix(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// The key of `stream` under `seed` (see [`Counter::at`]).
+pub fn stream_key(seed: u64, stream: Stream) -> u64 {
+    mix(seed ^ mix(stream as u64))
+}
+
 /// A point of the counter space: draws dimension after dimension.
 #[derive(Clone, Copy, Debug)]
 pub struct Counter {
@@ -38,8 +43,15 @@ pub struct Counter {
 impl Counter {
     /// The numbers of `index` in `stream` under `seed`.
     pub fn new(seed: u64, stream: Stream, index: u64) -> Self {
+        Counter::at(stream_key(seed, stream), index)
+    }
+
+    /// The numbers of `index` in the stream of key `key` ([`stream_key`], hoisted out of
+    /// per-sample loops): the same as [`Counter::new`].
+    #[inline]
+    pub fn at(key: u64, index: u64) -> Self {
         Counter {
-            key: mix(mix(seed ^ mix(stream as u64)) ^ index),
+            key: mix(key ^ index),
             dim: 0,
         }
     }

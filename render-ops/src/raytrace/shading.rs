@@ -171,6 +171,9 @@ pub struct LightSet<'a> {
     pub offsets: SmallVec<[usize; 8]>,
     /// Number of area lights.
     pub n_area: usize,
+    /// Per light, for directional ones: the unit direction towards the light and the row's
+    /// length (the same for every shading point, so normalised once per set).
+    toward: SmallVec<[(V3, f64); 8]>,
 }
 
 impl<'a> LightSet<'a> {
@@ -185,8 +188,16 @@ impl<'a> LightSet<'a> {
         (at == rows.len()).then(|| LightSet {
             kinds,
             rows,
-            offsets,
             n_area: kinds.iter().filter(|k| **k == LightKind::Area).count(),
+            toward: kinds
+                .iter()
+                .zip(&offsets)
+                .map(|(k, &o)| match k {
+                    LightKind::Directional => normalize3(scale3(rows[o], -1.0), SAFE_EPS),
+                    _ => ([0.0; 3], 0.0),
+                })
+                .collect(),
+            offsets,
         })
     }
 
@@ -253,7 +264,12 @@ impl<'a> LightSet<'a> {
             }
             _ => {}
         }
-        let (v, vlen) = normalize3(sub3(eye, x), SAFE_EPS);
+        // The view direction: only the specular terms read it.
+        let (v, vlen) = if matches!(m.shading, Shading::Phong | Shading::BlinnPhong) {
+            normalize3(sub3(eye, x), SAFE_EPS)
+        } else {
+            (z, 0.0)
+        };
         let ka = m.ka.unwrap_or(albedo);
         let mut area_k = 0;
         for (i, kind) in self.kinds.iter().enumerate() {
@@ -270,12 +286,11 @@ impl<'a> LightSet<'a> {
                     }
                 }
                 LightKind::Directional | LightKind::Point => {
-                    let (lraw, shadow) = if *kind == LightKind::Directional {
-                        (scale3(r[o], -1.0), Shadow::Along(scale3(r[o], -1.0)))
+                    let ((l, llen), shadow) = if *kind == LightKind::Directional {
+                        (self.toward[i], Shadow::Along(scale3(r[o], -1.0)))
                     } else {
-                        (sub3(r[o], x), Shadow::Toward(r[o]))
+                        (normalize3(sub3(r[o], x), SAFE_EPS), Shadow::Toward(r[o]))
                     };
-                    let (l, llen) = normalize3(lraw, SAFE_EPS);
                     if dot3(n, l) <= 0.0 || !visible(shadow) {
                         continue;
                     }
