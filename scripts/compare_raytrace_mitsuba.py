@@ -41,7 +41,9 @@ OBJ parsing and output files, are recorded too as *_process_ms); Mitsuba: in pro
 params.update() (BVH rebuild) + render + copy to numpy; fwd+bwd adds dr.backward of L and
 reading the vertex gradient). Mitsuba's integrator: direct_projective with sppc = sppp = spp and
 sppi = spp for the lit scenes (shadow gradients), 0 for ico5k (bench_mitsuba.py's setting: no
-secondary visibility there). Records go to OUT/compare.jsonl.
+secondary visibility there). Tapestry's edge samples: --edge-samples-per-pixel primary and
+shadow-edge samples per pixel (default 1) and --area-edge-samples per pixel sample. Records go
+to OUT/compare.jsonl.
 """
 import argparse
 import json
@@ -67,6 +69,8 @@ ap.add_argument("--scenes", default="ico5k,shadow_dir,shadow_area")
 ap.add_argument("--mitsuba-reference", action="store_true")
 ap.add_argument("--area-edge-samples", type=int, default=1,
                 help="Tapestry's area-light edge samples per pixel sample")
+ap.add_argument("--edge-samples-per-pixel", type=int, default=1,
+                help="Tapestry's primary and shadow edge samples per pixel (Mitsuba's sppp = spp)")
 ap.add_argument("--guiding", default="octree", help="Mitsuba's guiding of indirect discontinuities")
 a = ap.parse_args()
 
@@ -135,7 +139,9 @@ def tap_json(name, s, V, C, spp, seed, tag):
          "image": {"width": W, "height": H, "background": [0, 0, 0]},
          "lights": s["lights"], "material": {"shading": s["shading"]},
          "raster": {"method": "raytrace", "spp": spp, "seed": seed,
-                    "area_edge_samples": a.area_edge_samples}}
+                    "area_edge_samples": a.area_edge_samples,
+                    "edge_samples": a.edge_samples_per_pixel * W * H,
+                    "shadow_edge_samples": a.edge_samples_per_pixel * W * H}}
     p = os.path.join(a.out, f"{name}_{tag}_{spp}_{seed}.json")
     json.dump(j, open(p, "w"), indent=1)
     return p
@@ -369,6 +375,7 @@ def run(name, s):
     rec["mitsuba"] = "mitsuba %s / drjit %s, llvm_ad_rgb, direct_projective sppc=sppp=spp, sppi=%s, guiding %s" % (
         mi.__version__, dr.__version__, "spp" if s["lights"] else 0, a.guiding)
     rec["area_edge_samples"] = a.area_edge_samples
+    rec["edge_samples_per_pixel"] = a.edge_samples_per_pixel
     return rec
 
 

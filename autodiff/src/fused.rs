@@ -421,6 +421,14 @@ pub(crate) fn plan<T: Real>(
     let n_in = dag.ext_shapes.len();
     let first = &dag.nodes[dag.targets[0]].shape;
     let n_rows = if first.is_empty() { 1 } else { first[0] };
+    // Empty outputs (no fragments in view) have no rows to chunk: eager ops handle them.
+    if dag
+        .targets
+        .iter()
+        .any(|&t| dag.nodes[t].shape.iter().product::<usize>() == 0)
+    {
+        return None;
+    }
     for &t in &dag.targets {
         let s = &dag.nodes[t].shape;
         if s.is_empty() != first.is_empty() || (!s.is_empty() && s[0] != n_rows) {
@@ -2339,6 +2347,33 @@ fn flat_refs<'a, T: Real>(ts: &[&'a Tensor<T>]) -> Vec<Cow<'a, [T]>> {
 mod tests {
     use super::*;
     use crate::rng::Rng;
+
+    /// A region over zero rows (no fragments in view) is evaluated eagerly: empty values and
+    /// zero gradients of the inputs' shapes, in every backward mode, no panic.
+    #[test]
+    fn a_region_over_zero_rows_gives_empty_values_and_zero_gradients() {
+        for mode in [
+            FusedBackward::Recompute,
+            FusedBackward::Preaccumulate,
+            FusedBackward::PreaccumulateForward,
+        ] {
+            let t = crate::Tape::<f64>::new();
+            t.set_fused_backward(mode);
+            let normal = t.var(crate::tensor::from_vec(&[0, 3], vec![]).unwrap(), true);
+            let light = t.var(
+                crate::tensor::from_vec(&[3], vec![0.3, -0.6, 0.9]).unwrap(),
+                true,
+            );
+            let y = t.fused(|| {
+                let n = normal.normalize(0.5);
+                ((n * light).sum_axes(&[-1], false)).sin()
+            });
+            assert_eq!(y.value().unwrap().shape(), &[0]);
+            let g = t.backward(y.sum()).unwrap();
+            assert_eq!(g.wrt(normal).shape(), &[0, 3]);
+            assert_eq!(g.wrt(light).iter().copied().collect::<Vec<_>>(), [0.0; 3]);
+        }
+    }
 
     /// The one-loop value and tangent of the polynomial unary ops give the bits of the value
     /// pass followed by the tangent pass (`unary_fwd`, then `unary_bwd`), in `f32` (the fast

@@ -113,22 +113,44 @@ impl ScreenGrid {
             .collect();
         // Tiles of the mean box side rounded down to a power of two, 4 to 64 pixels (on the
         // 5120-face sphere at 256 x 256, about 5 px: tiles of 4 px query 1.3x faster than 8
-        // and 16, with twice and three times the entries).
+        // and 16, with twice and three times the entries), larger where the lists would be
+        // long (below).
         let (sum, n) = boxes
             .iter()
             .flatten()
             .fold((0.0, 0usize), |(s, n), (b, _)| {
-                (s + (b[1] - b[0]).min(wf) + (b[3] - b[2]).min(hf), n + 2)
+                (s + (b[1] - b[0]).min(wf) + (b[3] - b[2]).min(hf), n + 1)
             });
-        let side = if n > 0 { sum / n as f64 } else { 1.0 };
-        let tile = ((side.max(1.0) as usize + 1).next_power_of_two() / 2).clamp(4, 64) as f64;
-        let tiles_x = (width as f64 / tile).ceil() as usize;
-        let tiles_y = (height as f64 / tile).ceil() as usize;
-        let range = |lo: f64, hi: f64, n: usize| {
+        let side = if n > 0 { sum / (2 * n) as f64 } else { 1.0 };
+        let mut tile = ((side.max(1.0) as usize + 1).next_power_of_two() / 2).clamp(4, 64) as f64;
+        // Tiles `a..=b` along an axis of `n` tiles of side `tile` that `[lo, hi]` covers.
+        let range = |lo: f64, hi: f64, n: usize, tile: f64| {
             let a = (lo / tile).floor().max(0.0) as usize;
             let b = ((hi / tile).floor().max(0.0) as usize).min(n - 1);
             a.min(n - 1)..=b
         };
+        let tiles = |tile: f64| {
+            let n = |len: f64| (len / tile).ceil() as usize;
+            (n(wf), n(hf))
+        };
+        // Few large triangles among many small ones would fill every small tile: double the
+        // tiles until the lists hold at most 16 entries per triangle (plus one per tile).
+        let entries_at = |tile: f64| {
+            let (nx, ny) = tiles(tile);
+            boxes
+                .iter()
+                .flatten()
+                .map(|(b, _)| {
+                    let span = |r: std::ops::RangeInclusive<usize>| r.end() + 1 - r.start();
+                    span(range(b[0], b[1], nx, tile)) * span(range(b[2], b[3], ny, tile))
+                })
+                .sum::<usize>()
+        };
+        while tile < wf.max(hf) && entries_at(tile) > 16 * n + tiles(tile).0 * tiles(tile).1 {
+            tile *= 2.0;
+        }
+        let (tiles_x, tiles_y) = tiles(tile);
+        let range = |lo: f64, hi: f64, n: usize| range(lo, hi, n, tile);
         let mut count = vec![0u32; tiles_x * tiles_y + 1];
         for (b, _) in boxes.iter().flatten() {
             for ty in range(b[2], b[3], tiles_y) {
@@ -294,6 +316,37 @@ mod tests {
             hits += a.is_some() as usize;
         }
         assert!(hits > 10000, "{hits}");
+    }
+
+    #[test]
+    fn a_few_large_triangles_among_many_small_ones_keep_the_lists_short() {
+        // 500 triangles of about a pixel and two that cover the 512 x 512 image: at the
+        // small ones' 4 px tiles the two would add 2 x 16384 entries.
+        let (mut pos, mut faces) = soup_around(500, 9, |c, _| {
+            let (x, y) = (c.uniform() * 2.0 - 1.0, c.uniform() * 2.0 - 1.0);
+            ([x, y, 1.0], 0.004)
+        });
+        let b = pos.len() as u32;
+        pos.extend([[-3.0, -3.0, 2.0], [3.0, -3.0, 2.0], [0.0, 3.0, 2.0]]);
+        pos.extend([[-3.0, 3.0, 2.5], [3.0, 3.0, 2.5], [0.0, -3.0, 2.5]]);
+        faces.extend([[b, b + 1, b + 2], [b + 3, b + 4, b + 5]]);
+        let (w, h) = (512usize, 512usize);
+        let grid = ScreenGrid::new(&pos, &faces, w, h, 0.1);
+        let tiles = grid.tiles_x * grid.tiles_y;
+        assert!(grid.tile > 4.0, "{}", grid.tile);
+        assert!(grid.entries.len() <= 16 * faces.len() + tiles);
+        let bvh = Bvh::new(&pos, &faces);
+        let mut c = Counter::new(4, Stream::Pixel, 2);
+        for _ in 0..4000 {
+            let u = [c.uniform() * w as f64, c.uniform() * h as f64];
+            let dir = [
+                2.0 * u[0] / w as f64 - 1.0,
+                1.0 - 2.0 * u[1] / h as f64,
+                1.0,
+            ];
+            let r = Ray::new([0.0; 3], dir);
+            assert_eq!(grid.closest(&r, u, 0.1, 50.0), bvh.closest(&r, 0.1, 50.0));
+        }
     }
 
     #[test]

@@ -576,6 +576,20 @@ fn load_and_maybe_render(text: &str) {
     }
 }
 
+/// A case the fuzzer found (2026-11-29): the camera's target at `z = u64::MAX` (the scene
+/// must load and render, or fail with an error, without a panic).
+#[test]
+fn a_camera_target_at_u64_max_renders_without_panicking() {
+    let v = mutate_json(
+        SCENE,
+        &[JsonMutation::Replace(
+            vec![0, 0, 2],
+            serde_json::json!(u64::MAX),
+        )],
+    );
+    load_and_maybe_render(&v.to_string());
+}
+
 #[test]
 fn the_inputs_that_are_mutated_are_valid() {
     let m = parse_obj_str::<f64>(OBJ).unwrap();
