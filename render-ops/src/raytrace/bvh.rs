@@ -269,12 +269,7 @@ impl Bvh {
         self.walk(r, &mut t_far, |slot, t_far| {
             if let Some((t, bary)) = r.intersect(&self.tris[slot], t_min, t_far.next_up()) {
                 let face = self.order[slot];
-                let better = match &best {
-                    None => true,
-                    Some(b) => t < b.t || (t == b.t && face < b.face),
-                };
-                if better && t < t_max {
-                    best = Some(Hit { t, bary, face });
+                if (Hit { t, bary, face }).keep_if_nearer(&mut best, t_max) {
                     *t_far = t;
                 }
             }

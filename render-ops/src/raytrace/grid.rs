@@ -40,9 +40,8 @@ pub struct ScreenGrid {
     /// Tile `i`'s entries are `entries[start[i]..start[i + 1]]`, by `(z, face)`.
     start: Vec<u32>,
     entries: Vec<Entry>,
+    /// Triangle `f`'s vertices (face order).
     tris: Vec<[V3; 3]>,
-    positions: Vec<V3>,
-    faces: Vec<[u32; 3]>,
     outside: OnceLock<Bvh>,
 }
 
@@ -205,8 +204,6 @@ impl ScreenGrid {
             start,
             entries,
             tris,
-            positions: q.to_vec(),
-            faces: faces.to_vec(),
             outside: OnceLock::new(),
         }
     }
@@ -218,7 +215,14 @@ impl ScreenGrid {
         if !(u[0] >= 0.0 && u[0] <= self.width && u[1] >= 0.0 && u[1] <= self.height) {
             return self
                 .outside
-                .get_or_init(|| Bvh::new(&self.positions, &self.faces))
+                .get_or_init(|| {
+                    // The triangles as an unwelded soup: face `f` is vertices `3f..3f + 3`.
+                    let soup: Vec<V3> = self.tris.iter().flatten().copied().collect();
+                    let faces: Vec<[u32; 3]> = (0..self.tris.len() as u32)
+                        .map(|f| [3 * f, 3 * f + 1, 3 * f + 2])
+                        .collect();
+                    Bvh::new(&soup, &faces)
+                })
                 .closest(r, t_min, t_max);
         }
         let tx = ((u[0] / self.tile) as usize).min(self.tiles_x - 1);
@@ -238,16 +242,8 @@ impl ScreenGrid {
             if let Some((t, bary)) =
                 r.intersect(&self.tris[e.face as usize], t_min, t_far.next_up())
             {
-                let better = match &best {
-                    None => true,
-                    Some(b) => t < b.t || (t == b.t && e.face < b.face),
-                };
-                if better && t < t_max {
-                    best = Some(Hit {
-                        t,
-                        bary,
-                        face: e.face,
-                    });
+                let face = e.face;
+                if (Hit { t, bary, face }).keep_if_nearer(&mut best, t_max) {
                     t_far = t;
                 }
             }

@@ -32,6 +32,23 @@ pub struct Hit {
     pub face: u32,
 }
 
+impl Hit {
+    /// Puts `self` in `best` when it is nearer (`t`, then the lower face index: the closest-hit
+    /// rule of every traversal) and below `t_max`; whether it did.
+    #[inline]
+    pub fn keep_if_nearer(self, best: &mut Option<Hit>, t_max: f64) -> bool {
+        let nearer = match best {
+            None => true,
+            Some(b) => self.t < b.t || (self.t == b.t && self.face < b.face),
+        };
+        let keep = nearer && self.t < t_max;
+        if keep {
+            *best = Some(self);
+        }
+        keep
+    }
+}
+
 impl Ray {
     /// A ray from `origin` along `dir` (non-zero).
     pub fn new(origin: V3, dir: V3) -> Self {

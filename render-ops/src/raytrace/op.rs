@@ -236,6 +236,9 @@ pub(super) struct Scene<'a> {
     /// Strata per pixel ([`RaytraceSettings::strata`]) and the pixel samples' stream key.
     strata: (usize, usize),
     pixel_key: u64,
+    /// `shading: none` and no lights: the colour is the albedo, and nothing reads a hit's
+    /// point or normals.
+    unlit: bool,
 }
 
 /// Per-chunk gradient accumulators (dense per vertex; only the wanted inputs allocated): clip,
@@ -382,6 +385,7 @@ impl<'a> Scene<'a> {
             scale,
             strata: s.strata(),
             pixel_key: stream_key(s.seed, Stream::Pixel),
+            unlit: s.reflection.shading == crate::scene::Shading::None && s.lights.is_empty(),
         }
     }
 
@@ -432,11 +436,7 @@ impl<'a> Scene<'a> {
             }
             o
         };
-        // Unlit (`shading: none`, no lights): the colour is the albedo, and nothing reads the
-        // point or the normals.
-        let unlit =
-            self.s.reflection.shading == crate::scene::Shading::None && self.s.lights.is_empty();
-        let (x, nraw, ng) = if unlit {
+        let (x, nraw, ng) = if self.unlit {
             ([0.0; 3], [0.0; 3], [0.0; 3])
         } else {
             (
@@ -520,7 +520,7 @@ impl<'a> Scene<'a> {
         );
         if let Some((g3, acc)) = grad {
             if let Some((edges, index)) = area_edges {
-                self.area_edge_terms(&hit, g3, edges, index, acc);
+                self.area_edge_terms(lights, &hit, g3, (edges, index), acc);
             }
             self.surface_backward(&hit, &sg, acc);
         }
@@ -571,22 +571,33 @@ impl<'a> Scene<'a> {
 
     /// `f(u - eps n) - f(u + eps n)` for the image point `u` of an edge with image tangent
     /// `a` (`n` = `perp(a) / |a|`), and the pixel of `u`; `None` off the image.
-    fn two_sided(&self, u: [f64; 2], a: [f64; 2], ctr: Counter) -> Option<(usize, [f64; 4])> {
+    fn two_sided(
+        &self,
+        lights: &LightSet<'_>,
+        u: [f64; 2],
+        a: [f64; 2],
+        ctr: Counter,
+    ) -> Option<(usize, [f64; 4])> {
         let p = self.pixel(u)?;
         let [um, up] = side_points(u, a)?;
-        let lights = self.lights();
-        let minus = self.radiance(&lights, um, ctr, None, None);
-        let plus = self.radiance(&lights, up, ctr, None, None);
+        let minus = self.radiance(lights, um, ctr, None, None);
+        let plus = self.radiance(lights, up, ctr, None, None);
         Some((p, std::array::from_fn(|k| minus[k] - plus[k])))
     }
 
     /// Area-light edge terms of one pixel sample (module docs), into `acc`.
-    fn area_edge_terms(&self, hit: &Surface, g: V3, edges: &Edges, index: u64, acc: &mut Acc) {
+    fn area_edge_terms(
+        &self,
+        lights: &LightSet<'_>,
+        hit: &Surface,
+        g: V3,
+        (edges, index): (&Edges, u64),
+        acc: &mut Acc,
+    ) {
         let m = self.s.area_edge_samples;
         if m == 0 {
             return;
         }
-        let lights = self.lights();
         let mut area_k = 0u64;
         for (li, kind) in self.s.lights.iter().enumerate() {
             if *kind != LightKind::Area {
@@ -708,11 +719,18 @@ impl<'a> Scene<'a> {
     }
 
     /// One primary-edge sample (module docs).
-    fn primary_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
+    fn primary_edge(
+        &self,
+        lights: &LightSet<'_>,
+        j: usize,
+        edges: &Edges,
+        gimg: &[[f64; 4]],
+        acc: &mut Acc,
+    ) {
         let Some((ep, ctr)) = self.primary_edge_point(j, edges) else {
             return;
         };
-        if let Some((p, delta)) = self.two_sided(ep.u, ep.a, ctr) {
+        if let Some((p, delta)) = self.two_sided(lights, ep.u, ep.a, ctr) {
             acc.primary_edge(&ep, dot4(gimg[p], delta));
         }
     }
@@ -721,6 +739,7 @@ impl<'a> Scene<'a> {
     /// (module docs), with its counter; `None` when it casts no visible shadow edge.
     pub(super) fn shadow_edge_point(
         &self,
+        lights: &LightSet<'_>,
         j: usize,
         edges: &Edges,
     ) -> Option<(ShadowEdgePoint, Counter)> {
@@ -729,7 +748,7 @@ impl<'a> Scene<'a> {
         let (pick, pe) = edges.shadow.sample(ctr.uniform());
         let s = ctr.uniform();
         let (li, e) = edges.shadow_items[pick as usize];
-        let o = self.lights().offsets[li];
+        let o = lights.offsets[li];
         let point = self.s.lights[li] == LightKind::Point;
         let edge = edges.list[e as usize];
         let (pa, pb) = (
@@ -796,11 +815,18 @@ impl<'a> Scene<'a> {
     }
 
     /// One shadow-edge sample of a point or directional light (module docs).
-    fn shadow_edge(&self, j: usize, edges: &Edges, gimg: &[[f64; 4]], acc: &mut Acc) {
-        let Some((sp, ctr)) = self.shadow_edge_point(j, edges) else {
+    fn shadow_edge(
+        &self,
+        lights: &LightSet<'_>,
+        j: usize,
+        edges: &Edges,
+        gimg: &[[f64; 4]],
+        acc: &mut Acc,
+    ) {
+        let Some((sp, ctr)) = self.shadow_edge_point(lights, j, edges) else {
             return;
         };
-        if let Some((px, delta)) = self.two_sided(sp.u, sp.a, ctr) {
+        if let Some((px, delta)) = self.two_sided(lights, sp.u, sp.a, ctr) {
             acc.shadow_edge(&sp, dot4(gimg[px], delta));
         }
     }
@@ -1140,12 +1166,12 @@ impl<T: Real> Op<T> for RaytraceOp {
                 }
                 if !edges.primary.is_empty() {
                     for j in block(self.s.primary_edge_samples, c) {
-                        sc.primary_edge(j, &edges, &gimg, &mut acc);
+                        sc.primary_edge(&lights, j, &edges, &gimg, &mut acc);
                     }
                 }
                 if !edges.shadow.is_empty() {
                     for j in block(self.s.shadow_edge_samples, c) {
-                        sc.shadow_edge(j, &edges, &gimg, &mut acc);
+                        sc.shadow_edge(&lights, j, &edges, &gimg, &mut acc);
                     }
                 }
                 acc

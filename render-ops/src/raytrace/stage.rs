@@ -296,7 +296,7 @@ pub fn raytrace_fragments<'t, T: Real>(
                 let (ep, _) = sc.primary_edge_point(j, edges)?;
                 (EdgeKind::Primary(ep), ep.u, ep.a)
             } else {
-                let (sp, _) = sc.shadow_edge_point(j - n_primary, edges)?;
+                let (sp, _) = sc.shadow_edge_point(&lights, j - n_primary, edges)?;
                 (EdgeKind::Shadow(sp), sp.u, sp.a)
             };
             let p = sc.pixel(u)?;
