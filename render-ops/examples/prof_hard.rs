@@ -24,7 +24,7 @@ use std::sync::Arc;
 
 use autodiff::ndarray::{ArrayD, IxDyn};
 use autodiff::Tape;
-use common::{peer_scene, peers_view_proj, pool, PeerScene};
+use common::{driver_args, peer_scene, peers_view_proj, pool, PeerScene};
 use render_ops::blend::blend_hard;
 use render_ops::interpolate::interpolate;
 use render_ops::raster::RasterSettings;
@@ -32,10 +32,7 @@ use render_ops::rasterize::render_attributes;
 use render_ops::transform::to_clip;
 
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let size: usize = args[1].parse().unwrap();
-    let iters: usize = args[2].parse().unwrap();
-    let subdiv: u32 = args.get(3).map_or(4, |s| s.parse().unwrap());
+    let (size, iters, subdiv) = driver_args();
     let m = peers_view_proj();
     let PeerScene { pos, col, faces } = peer_scene(subdiv);
     let s = RasterSettings {

@@ -69,3 +69,15 @@ pub fn frame_in<R: Send>(pool: &rayon::ThreadPool, f: impl FnOnce() -> R + Send)
         f()
     })
 }
+
+/// A profiling driver's command line, `SIZE ITERS [SUBDIV]`: image side, iterations, and the
+/// icosphere's subdivisions (default 4, the 5k-face sphere).
+pub fn driver_args() -> (usize, usize, u32) {
+    let args: Vec<String> = std::env::args().collect();
+    let size = args[1].parse().expect("SIZE: an image side in pixels");
+    let iters = args[2].parse().expect("ITERS: a count");
+    let subdiv = args
+        .get(3)
+        .map_or(4, |s| s.parse().expect("SUBDIV: a count"));
+    (size, iters, subdiv)
+}

@@ -57,8 +57,10 @@
 //! occluders only their depth line counts), and two regions separated by a line of one of them
 //! (a mesh's neighbours, by their shared edge: the separating-axis test of convex polygons)
 //! skip the subtraction. Fragments are pixel-major, in order of nearest depth over the pixel
-//! then face index; per-vertex gradients are added in fragment order ([`crate::scatter`]), so
-//! results are bit-identical for any thread count. The number of (face, pixel-box) pairs is
+//! then face index; in the backward each face's geometry gradient is summed over a row's
+//! pixels in column order (it is linear in the pixels' terms, so one conversion to clip
+//! coordinates per face and row) and the rows' sums are added to the vertices in row order
+//! ([`crate::scatter`]), so results are bit-identical for any thread count. The number of (face, pixel-box) pairs is
 //! bounded before any work ([`MAX_ANALYTIC_PAIRS`]).
 
 mod polygon;
@@ -118,8 +120,9 @@ enum Cover {
     Outside,
     /// All of the square (every half-plane holds it).
     Whole,
-    /// An edge, near or far line may cross it.
-    Partial,
+    /// An edge, near or far line may cross it: bit `n` set for each half-plane `n` that does
+    /// not hold all of the square (the only ones the clipper needs to cut the square by).
+    Partial(u8),
 }
 
 /// Relative margin of [`cover`] and of the whole-pixel depth test: ten times the polygon
@@ -132,8 +135,8 @@ const COVER_TOL: f64 = 1e-9;
 /// square.
 #[inline]
 fn cover(g: &FaceGeo, cx: f64, cy: f64) -> Cover {
-    let mut whole = true;
-    for l in &g.hp[..g.nhp as usize] {
+    let mut cuts = 0u8;
+    for (n, l) in g.hp[..g.nhp as usize].iter().enumerate() {
         let (a, b) = (l[0] * cx, l[1] * cy);
         let v = a + b + l[2];
         let r = 0.5 * (l[0].abs() + l[1].abs());
@@ -141,12 +144,14 @@ fn cover(g: &FaceGeo, cx: f64, cy: f64) -> Cover {
         if v + r < -tol {
             return Cover::Outside;
         }
-        whole &= v - r > tol;
+        if !(v - r > tol) {
+            cuts |= 1 << n;
+        }
     }
-    if whole {
+    if cuts == 0 {
         Cover::Whole
     } else {
-        Cover::Partial
+        Cover::Partial(cuts)
     }
 }
 
@@ -307,6 +312,18 @@ struct Scratch {
     cover: Vec<Cover>,
 }
 
+/// A thread's working memory for the rows it solves: the pixel scratch, the row's candidate
+/// lists, the line renumbering of [`KeptRow::keep`], and the sizes of the last row's outputs.
+#[derive(Default)]
+struct RowScratch {
+    sc: Scratch,
+    off: Vec<u32>,
+    cand: Vec<u32>,
+    map: Vec<u32>,
+    moves: Vec<bool>,
+    sizes: (usize, [usize; 4]),
+}
+
 /// One row's pixels as the forward solved them, kept for the backward, which chains through
 /// the same pieces instead of solving the pixels again. Per column (CSR, `width + 1` offsets):
 /// its lines (only those that bound a kept piece, renumbered in their order, so the backward
@@ -327,19 +344,36 @@ struct KeptRow {
 }
 
 impl KeptRow {
-    fn new(width: usize) -> Self {
+    /// An empty row with room for `sizes` ([`KeptRow::sizes`]) lines, candidates, piece
+    /// vertices and pieces.
+    fn new(width: usize, sizes: &[usize; 4]) -> Self {
         let mut line_off = Vec::with_capacity(width + 1);
         line_off.push(0);
+        let mut slot_off = Vec::with_capacity(width + 1);
+        slot_off.push(0);
         KeptRow {
-            slot_off: line_off.clone(),
+            slot_off,
             line_off,
-            line_val: Vec::new(),
-            line_kind: Vec::new(),
-            slot_face: Vec::new(),
+            line_val: Vec::with_capacity(sizes[0]),
+            line_kind: Vec::with_capacity(sizes[0]),
+            slot_face: Vec::with_capacity(sizes[1]),
             frags: Vec::new(),
-            polys: Polys::default(),
-            pieces: Vec::new(),
+            polys: Polys {
+                vert: Vec::with_capacity(sizes[2]),
+                line: Vec::with_capacity(sizes[2]),
+            },
+            pieces: Vec::with_capacity(sizes[3]),
         }
+    }
+
+    /// How many lines, candidates, piece vertices and pieces the row holds.
+    fn sizes(&self) -> [usize; 4] {
+        [
+            self.line_val.len(),
+            self.slot_face.len(),
+            self.polys.vert.len(),
+            self.pieces.len(),
+        ]
     }
 
     /// A column without candidates.
@@ -432,7 +466,7 @@ fn solve_pixel(col: usize, row: usize, cands: &[u32], geos: &[FaceGeo], sc: &mut
     let (cx, cy) = (col as f64 + 0.5, row as f64 + 0.5);
     covers.clear();
     covers.extend(cands.iter().map(|&fi| cover(&geos[fi as usize], cx, cy)));
-    if !covers.contains(&Cover::Partial) {
+    if !covers.iter().any(|c| matches!(c, Cover::Partial(_))) {
         // The hard path: no edge, near or far line crosses the pixel. It is empty, or the
         // nearest face that holds it hides the others wherever its depth range over the
         // square is below theirs; otherwise depth planes may cross inside it (general path).
@@ -504,9 +538,17 @@ fn solve_pixel(col: usize, row: usize, cands: &[u32], geos: &[FaceGeo], sc: &mut
             };
             ls[n] = lines.push(*l, kind);
         }
+        // Half-planes that hold all of the square ([`cover`]'s margin is ten times the
+        // clipper's tolerance) would leave the piece as it is: only the others cut.
+        let cuts = match cov {
+            Cover::Partial(m) => m,
+            _ => 0,
+        };
         let mut p = Some(sq);
-        for &h in &ls[..nl] {
-            p = p.and_then(|p| polys.clip(lines, p, h).0);
+        for (n, &h) in ls[..nl].iter().enumerate() {
+            if cuts & (1 << n) != 0 {
+                p = p.and_then(|p| polys.clip(lines, p, h).0);
+            }
         }
         let Some(p) = p else {
             // Keep the slot numbering aligned with the lines pushed for it.
@@ -570,8 +612,19 @@ fn solve_pixel(col: usize, row: usize, cands: &[u32], geos: &[FaceGeo], sc: &mut
             }
             // Separating axes: two convex regions that do not overlap are separated by the
             // line of an edge of one of them (a mesh's neighbours by their shared edge).
+            // Mesh neighbours first: their shared edge is one line with opposite signs
+            // (bit-exact negatives), and each region lies on its own side of it.
+            let (li, lj) = (&ci.lines[..ci.nl as usize], &cj.lines[..cj.nl as usize]);
+            let shared = li.iter().any(|&a| {
+                let a = lines.val[a as usize];
+                lj.iter().any(|&b| {
+                    let b = lines.val[b as usize];
+                    a[0] == -b[0] && a[1] == -b[1] && a[2] == -b[2]
+                })
+            });
             let separates = |p: Poly, ls: &[u32]| ls.iter().any(|&h| polys.outside(lines, p, h));
-            if separates(ci.poly, &cj.lines[..cj.nl as usize])
+            if shared
+                || separates(ci.poly, &cj.lines[..cj.nl as usize])
                 || separates(cj.poly, &ci.lines[..ci.nl as usize])
             {
                 continue;
@@ -709,6 +762,28 @@ struct FaceGrad {
 }
 
 impl FaceGrad {
+    /// Adds `o` (the gradients are linear in these fields, so a face's pixels may be summed
+    /// before [`FaceGrad::to_clip`]).
+    fn add(&mut self, o: &FaceGrad) {
+        for k in 0..3 {
+            for a in 0..3 {
+                self.ge[k][a] += o.ge[k][a];
+                self.gv[k][a] += o.gv[k][a];
+            }
+            self.gd[k] += o.gd[k];
+            self.gz[k] += o.gz[k];
+        }
+        self.gdet += o.gdet;
+    }
+
+    fn is_zero(&self) -> bool {
+        self.ge == [[0.0; 3]; 3]
+            && self.gdet == 0.0
+            && self.gd == [0.0; 3]
+            && self.gz == [0.0; 3]
+            && self.gv == [[0.0; 3]; 3]
+    }
+
     /// The backward of [`at_centroid`]'s barycentrics, NDC depth and view depth: gradients to
     /// the geometry and returns `d/d c`.
     fn at_centroid(
@@ -935,22 +1010,29 @@ pub fn analytic_fragments<'t, T: Real>(
     let persp = s.perspective_correct;
     let per_row: Vec<(Vec<Rec>, Vec<u32>, KeptRow)> = (0..h)
         .into_par_iter()
-        .map(|row| {
-            let mut sc = Scratch::default();
-            let (mut off, mut cand) = (Vec::new(), Vec::new());
-            bins.columns(row, &dense, w, &mut off, &mut cand);
-            let mut recs = Vec::new();
+        .map_init(RowScratch::default, |rs, row| {
+            let RowScratch {
+                sc,
+                off,
+                cand,
+                map,
+                moves,
+                sizes,
+            } = rs;
+            bins.columns(row, &dense, w, off, cand);
+            // Sized as the last row this thread solved (capacity only: the values do not
+            // depend on it).
+            let mut recs = Vec::with_capacity(sizes.0);
             let mut counts = vec![0u32; w];
-            let mut kept = KeptRow::new(w);
-            let (mut map, mut moves) = (Vec::new(), Vec::new());
+            let mut kept = KeptRow::new(w, &sizes.1);
             for col in 0..w {
                 let cs = &cand[off[col] as usize..off[col + 1] as usize];
                 if cs.is_empty() {
                     kept.skip();
                     continue;
                 }
-                solve_pixel(col, row, cs, &dense, &mut sc);
-                kept.keep(&sc, &mut map, &mut moves);
+                solve_pixel(col, row, cs, &dense, sc);
+                kept.keep(sc, map, moves);
                 for fr in &sc.frags {
                     let face = sc.cands[fr.slot as usize].face;
                     let g = &dense[face as usize];
@@ -965,6 +1047,7 @@ pub fn analytic_fragments<'t, T: Real>(
                 }
                 counts[col] = sc.frags.len() as u32;
             }
+            *sizes = (recs.len(), kept.sizes());
             (recs, counts, kept)
         })
         .collect();
@@ -1047,10 +1130,11 @@ impl<T: Real> Op<T> for AnalyticOp<T> {
         Ok(fragment_outputs(&self.fragments, self.area.clone()))
     }
 
-    /// Per pixel holding a fragment with a gradient: the pixel re-solved, each fragment's
-    /// centroid values differentiated, its area and moments chained through its pieces to the
-    /// lines, the lines to their faces' clip coordinates; per-face corner gradients added to
-    /// the vertices in pixel order.
+    /// Per pixel holding a fragment with a gradient: each fragment's centroid values
+    /// differentiated, its area and moments chained through its kept pieces to the lines, the
+    /// lines to their faces' geometry; per row, each face's geometry gradient summed over the
+    /// row's pixels and chained to its clip coordinates once; the rows' corner gradients added
+    /// to the vertices in row order.
     fn backward(&self, ctx: &BackwardCtx<'_, '_, T>) -> AdResult<Vec<Option<Tensor<T>>>> {
         if !ctx.needs_grad[0] {
             return Ok(vec![None]);
@@ -1059,111 +1143,121 @@ impl<T: Real> Op<T> for AnalyticOp<T> {
         let get = |i: usize| grad_output_f64(ctx, i);
         let (gb, gd, gv, ga) = (get(0), get(1), get(2), get(3));
         let (w, h) = (f.width, f.height);
+        // Per thread: each face's slot in the row's sums (`u32::MAX`: none yet).
+        let nf = self.faces.len();
         let per_row: Vec<Vec<(u32, [f64; 12])>> = (0..h)
             .into_par_iter()
-            .map(|row| {
-                let mut out = Vec::new();
-                let first = f.offsets[row * w] as usize;
-                let last = f.offsets[(row + 1) * w] as usize;
-                let nz = |i: usize| {
-                    gb[3 * i] != 0.0
-                        || gb[3 * i + 1] != 0.0
-                        || gb[3 * i + 2] != 0.0
-                        || gd[i] != 0.0
-                        || gv[i] != 0.0
-                        || ga[i] != 0.0
-                };
-                if !(first..last).any(nz) {
-                    return out;
-                }
-                let kr = &self.kept[row];
-                let mut gline: Vec<[f64; 3]> = Vec::new();
-                let mut fg: Vec<FaceGrad> = Vec::new();
-                for col in 0..w {
-                    let p = row * w + col;
-                    let (a, b) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
-                    if !(a..b).any(nz) {
-                        continue;
+            .map_init(
+                || vec![u32::MAX; nf],
+                |row_slot, row| {
+                    let mut out = Vec::new();
+                    let first = f.offsets[row * w] as usize;
+                    let last = f.offsets[(row + 1) * w] as usize;
+                    let nz = |i: usize| {
+                        gb[3 * i] != 0.0
+                            || gb[3 * i + 1] != 0.0
+                            || gb[3 * i + 2] != 0.0
+                            || gd[i] != 0.0
+                            || gv[i] != 0.0
+                            || ga[i] != 0.0
+                    };
+                    if !(first..last).any(nz) {
+                        return out;
                     }
-                    let (l0, l1) = (kr.line_off[col] as usize, kr.line_off[col + 1] as usize);
-                    let (s0, s1) = (kr.slot_off[col] as usize, kr.slot_off[col + 1] as usize);
-                    let (lval, slot_face) = (&kr.line_val[l0..l1], &kr.slot_face[s0..s1]);
-                    gline.clear();
-                    gline.resize(l1 - l0, [0.0; 3]);
-                    fg.clear();
-                    fg.resize(s1 - s0, FaceGrad::default());
-                    for (j, fr) in kr.frags[a - first..b - first].iter().enumerate() {
-                        let i = a + j;
-                        if !nz(i) {
+                    let kr = &self.kept[row];
+                    let mut gline: Vec<[f64; 3]> = Vec::new();
+                    let mut fg: Vec<FaceGrad> = Vec::new();
+                    // The row's sums per face, in order of first appearance.
+                    let mut sums: Vec<(u32, FaceGrad)> = Vec::new();
+                    for col in 0..w {
+                        let p = row * w + col;
+                        let (a, b) = (f.offsets[p] as usize, f.offsets[p + 1] as usize);
+                        if !(a..b).any(nz) {
                             continue;
                         }
-                        let slot = fr.slot as usize;
-                        let g = &self.geos[slot_face[slot] as usize];
-                        let area = fr.mom[0];
-                        let c = [fr.mom[1] / area, fr.mom[2] / area];
-                        let gc = fg[slot].at_centroid(
-                            g,
-                            c,
-                            self.persp,
-                            [gb[3 * i], gb[3 * i + 1], gb[3 * i + 2]],
-                            gd[i],
-                            gv[i],
-                        );
-                        if fr.whole {
-                            // Area and centroid do not move with the geometry.
-                            continue;
-                        }
-                        // c = M / A.
-                        let gm = [
-                            ga[i] - (gc[0] * c[0] + gc[1] * c[1]) / area,
-                            gc[0] / area,
-                            gc[1] / area,
-                        ];
-                        for &pc in &kr.pieces[fr.pieces.0 as usize..fr.pieces.1 as usize] {
-                            kr.polys.moments_backward(lval, pc, gm, &mut gline);
-                        }
-                    }
-                    for (id, gl) in gline.iter().enumerate() {
-                        if *gl == [0.0; 3] {
-                            continue;
-                        }
-                        match kr.line_kind[l0 + id] {
-                            LineKind::Pixel => {}
-                            LineKind::Edge { f, k, sign } => {
-                                let ge = &mut fg[f as usize].ge[k as usize];
-                                for t in 0..3 {
-                                    ge[t] += sign * gl[t];
-                                }
+                        let (l0, l1) = (kr.line_off[col] as usize, kr.line_off[col + 1] as usize);
+                        let (s0, s1) = (kr.slot_off[col] as usize, kr.slot_off[col + 1] as usize);
+                        let (lval, slot_face) = (&kr.line_val[l0..l1], &kr.slot_face[s0..s1]);
+                        gline.clear();
+                        gline.resize(l1 - l0, [0.0; 3]);
+                        fg.clear();
+                        fg.resize(s1 - s0, FaceGrad::default());
+                        for (j, fr) in kr.frags[a - first..b - first].iter().enumerate() {
+                            let i = a + j;
+                            if !nz(i) {
+                                continue;
                             }
-                            LineKind::Depth { f, sign } => {
-                                let gdp = &mut fg[f as usize].gd;
-                                for t in 0..3 {
-                                    gdp[t] += sign * gl[t];
-                                }
+                            let slot = fr.slot as usize;
+                            let g = &self.geos[slot_face[slot] as usize];
+                            let area = fr.mom[0];
+                            let c = [fr.mom[1] / area, fr.mom[2] / area];
+                            let gc = fg[slot].at_centroid(
+                                g,
+                                c,
+                                self.persp,
+                                [gb[3 * i], gb[3 * i + 1], gb[3 * i + 2]],
+                                gd[i],
+                                gv[i],
+                            );
+                            if fr.whole {
+                                // Area and centroid do not move with the geometry.
+                                continue;
                             }
-                            LineKind::DepthDiff { f, g, sign } => {
-                                for t in 0..3 {
-                                    fg[f as usize].gd[t] += sign * gl[t];
-                                    fg[g as usize].gd[t] -= sign * gl[t];
-                                }
+                            // c = M / A.
+                            let gm = [
+                                ga[i] - (gc[0] * c[0] + gc[1] * c[1]) / area,
+                                gc[0] / area,
+                                gc[1] / area,
+                            ];
+                            for &pc in &kr.pieces[fr.pieces.0 as usize..fr.pieces.1 as usize] {
+                                kr.polys.moments_backward(lval, pc, gm, &mut gline);
                             }
                         }
-                    }
-                    for (slot, g) in fg.iter().enumerate() {
-                        let zero = g.ge == [[0.0; 3]; 3]
-                            && g.gdet == 0.0
-                            && g.gd == [0.0; 3]
-                            && g.gz == [0.0; 3]
-                            && g.gv == [[0.0; 3]; 3];
-                        if zero {
-                            continue;
+                        for (id, gl) in gline.iter().enumerate() {
+                            if *gl == [0.0; 3] {
+                                continue;
+                            }
+                            match kr.line_kind[l0 + id] {
+                                LineKind::Pixel => {}
+                                LineKind::Edge { f, k, sign } => {
+                                    let ge = &mut fg[f as usize].ge[k as usize];
+                                    for t in 0..3 {
+                                        ge[t] += sign * gl[t];
+                                    }
+                                }
+                                LineKind::Depth { f, sign } => {
+                                    let gdp = &mut fg[f as usize].gd;
+                                    for t in 0..3 {
+                                        gdp[t] += sign * gl[t];
+                                    }
+                                }
+                                LineKind::DepthDiff { f, g, sign } => {
+                                    for t in 0..3 {
+                                        fg[f as usize].gd[t] += sign * gl[t];
+                                        fg[g as usize].gd[t] -= sign * gl[t];
+                                    }
+                                }
+                            }
                         }
-                        let face = slot_face[slot];
+                        for (slot, g) in fg.iter().enumerate() {
+                            if g.is_zero() {
+                                continue;
+                            }
+                            let face = slot_face[slot] as usize;
+                            if row_slot[face] == u32::MAX {
+                                row_slot[face] = sums.len() as u32;
+                                sums.push((face as u32, FaceGrad::default()));
+                            }
+                            sums[row_slot[face] as usize].1.add(g);
+                        }
+                    }
+                    for (face, g) in sums {
+                        row_slot[face as usize] = u32::MAX;
                         out.push((face, g.to_clip(&self.geos[face as usize], w, h)));
                     }
-                }
-                out
-            })
+                    out
+                },
+            )
             .collect();
         let nv = ctx.inputs[0].shape()[0];
         let mut g = vec![0.0f64; nv * 4];

@@ -118,37 +118,39 @@ impl Polys {
         let l = lines.val[h as usize];
         let n = p.len as usize;
         let s0 = p.start as usize;
-        let class = |this: &Self, k: usize| -> i8 {
-            let v = this.vert[s0 + k];
-            let prev = this.line[s0 + (k + n - 1) % n];
-            let next = this.line[s0 + k];
-            if same_line(&lines.val[prev as usize], &l) || same_line(&lines.val[next as usize], &l)
-            {
-                return 0;
-            }
-            let d = l[0] * v[0] + l[1] * v[1] + l[2];
-            let scale = (l[0] * v[0]).abs() + (l[1] * v[1]).abs() + l[2].abs();
-            if d.abs() <= ON_TOL * scale {
-                0
-            } else if d > 0.0 {
-                1
-            } else {
-                -1
-            }
-        };
+        if n > 64 {
+            // (Polygons never exceed 64 vertices: each clip adds at most one.)
+            return (Some(p), false);
+        }
+        // Which edges lie on `l` itself (a shared mesh edge, either orientation): their
+        // vertices count as on it, exactly.
+        let mut on_l = [false; 64];
+        for (k, o) in on_l[..n].iter_mut().enumerate() {
+            *o = same_line(&lines.val[self.line[s0 + k] as usize], &l);
+        }
         let mut cls = [0i8; 64];
         let mut any_out = false;
         let mut any_in = false;
         for k in 0..n {
-            let c = if k < 64 { class(self, k) } else { 0 };
-            if k < 64 {
-                cls[k] = c;
-            }
+            let c = if on_l[(k + n - 1) % n] || on_l[k] {
+                0
+            } else {
+                let v = self.vert[s0 + k];
+                let d = l[0] * v[0] + l[1] * v[1] + l[2];
+                let scale = (l[0] * v[0]).abs() + (l[1] * v[1]).abs() + l[2].abs();
+                if d.abs() <= ON_TOL * scale {
+                    0
+                } else if d > 0.0 {
+                    1
+                } else {
+                    -1
+                }
+            };
+            cls[k] = c;
             any_out |= c < 0;
             any_in |= c > 0;
         }
-        if n > 64 || !any_out {
-            // (Polygons never exceed 64 vertices: each clip adds at most one.)
+        if !any_out {
             return (Some(p), false);
         }
         if !any_in {
@@ -182,7 +184,7 @@ impl Polys {
                 }
             }
         }
-        let out = self.finish(lines, start);
+        let out = self.finish(lines, start, h);
         (out, true)
     }
 
@@ -200,16 +202,23 @@ impl Polys {
     }
 
     /// Merges vertices between (nearly) parallel lines in the polygon that starts at `start`
-    /// and runs to the end of the arena; `None` (and the polygon removed) when fewer than
-    /// three vertices or less than [`MIN_AREA`] remain.
-    fn finish(&mut self, lines: &Lines, start: usize) -> Option<Poly> {
+    /// and runs to the end of the arena, just clipped by line `h`; `None` (and the polygon
+    /// removed) when fewer than three vertices or less than [`MIN_AREA`] remain. Only a vertex
+    /// on `h` can sit between parallel lines at first (the clipped polygon's other vertices
+    /// keep their two lines, which were checked when they were made), so the first scan looks
+    /// at those; after a merge, every vertex is looked at again.
+    fn finish(&mut self, lines: &Lines, start: usize, h: u32) -> Option<Poly> {
         let mut changed = true;
+        let mut only_h = true;
         while changed && self.vert.len() - start >= 3 {
             changed = false;
             let n = self.vert.len() - start;
             for k in 0..n {
                 let prev = self.line[start + (k + n - 1) % n];
                 let next = self.line[start + k];
+                if only_h && prev != h && next != h {
+                    continue;
+                }
                 let (a, b) = (&lines.val[prev as usize], &lines.val[next as usize]);
                 if parallel(a, b) {
                     // Drop vertex k: edge k - 1 runs on to vertex k + 1.
@@ -217,6 +226,7 @@ impl Polys {
                     self.line.remove(start + k);
                     // Edge k - 1 keeps its own line.
                     changed = true;
+                    only_h = false;
                     break;
                 }
             }
