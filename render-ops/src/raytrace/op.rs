@@ -569,20 +569,22 @@ impl<'a> Scene<'a> {
             .then(|| r as usize * self.s.width + c as usize)
     }
 
-    /// `f(u - eps n) - f(u + eps n)` for the image point `u` of an edge with image tangent
-    /// `a` (`n` = `perp(a) / |a|`), and the pixel of `u`; `None` off the image.
-    fn two_sided(
+    /// The loss's change across an edge at image point `u` with image tangent `a`:
+    /// `g_pixel . (f(u - eps n) - f(u + eps n))` (`n` = `perp(a) / |a|`, `g_pixel` the image
+    /// gradient of `u`'s pixel); `None` off the image.
+    fn across_edge(
         &self,
         lights: &LightSet<'_>,
         u: [f64; 2],
         a: [f64; 2],
         ctr: Counter,
-    ) -> Option<(usize, [f64; 4])> {
+        gimg: &[[f64; 4]],
+    ) -> Option<f64> {
         let p = self.pixel(u)?;
         let [um, up] = side_points(u, a)?;
         let minus = self.radiance(lights, um, ctr, None, None);
         let plus = self.radiance(lights, up, ctr, None, None);
-        Some((p, std::array::from_fn(|k| minus[k] - plus[k])))
+        Some(dot4(gimg[p], std::array::from_fn(|k| minus[k] - plus[k])))
     }
 
     /// Area-light edge terms of one pixel sample (module docs), into `acc`.
@@ -718,23 +720,6 @@ impl<'a> Scene<'a> {
         Some((point, ctr))
     }
 
-    /// One primary-edge sample (module docs).
-    fn primary_edge(
-        &self,
-        lights: &LightSet<'_>,
-        j: usize,
-        edges: &Edges,
-        gimg: &[[f64; 4]],
-        acc: &mut Acc,
-    ) {
-        let Some((ep, ctr)) = self.primary_edge_point(j, edges) else {
-            return;
-        };
-        if let Some((p, delta)) = self.two_sided(lights, ep.u, ep.a, ctr) {
-            acc.primary_edge(&ep, dot4(gimg[p], delta));
-        }
-    }
-
     /// Where shadow-edge sample `j` of a point or directional light falls in the image
     /// (module docs), with its counter; `None` when it casts no visible shadow edge.
     pub(super) fn shadow_edge_point(
@@ -812,23 +797,6 @@ impl<'a> Scene<'a> {
             weight: 1.0 / (self.s.shadow_edge_samples as f64 * pe),
         };
         Some((sp, ctr))
-    }
-
-    /// One shadow-edge sample of a point or directional light (module docs).
-    fn shadow_edge(
-        &self,
-        lights: &LightSet<'_>,
-        j: usize,
-        edges: &Edges,
-        gimg: &[[f64; 4]],
-        acc: &mut Acc,
-    ) {
-        let Some((sp, ctr)) = self.shadow_edge_point(lights, j, edges) else {
-            return;
-        };
-        if let Some((px, delta)) = self.two_sided(lights, sp.u, sp.a, ctr) {
-            acc.shadow_edge(&sp, dot4(gimg[px], delta));
-        }
     }
 }
 
@@ -1166,12 +1134,22 @@ impl<T: Real> Op<T> for RaytraceOp {
                 }
                 if !edges.primary.is_empty() {
                     for j in block(self.s.primary_edge_samples, c) {
-                        sc.primary_edge(&lights, j, &edges, &gimg, &mut acc);
+                        let Some((ep, ctr)) = sc.primary_edge_point(j, &edges) else {
+                            continue;
+                        };
+                        if let Some(gd) = sc.across_edge(&lights, ep.u, ep.a, ctr, &gimg) {
+                            acc.primary_edge(&ep, gd);
+                        }
                     }
                 }
                 if !edges.shadow.is_empty() {
                     for j in block(self.s.shadow_edge_samples, c) {
-                        sc.shadow_edge(&lights, j, &edges, &gimg, &mut acc);
+                        let Some((sp, ctr)) = sc.shadow_edge_point(&lights, j, &edges) else {
+                            continue;
+                        };
+                        if let Some(gd) = sc.across_edge(&lights, sp.u, sp.a, ctr, &gimg) {
+                            acc.shadow_edge(&sp, gd);
+                        }
                     }
                 }
                 acc
