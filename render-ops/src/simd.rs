@@ -296,6 +296,24 @@ pub(crate) fn use_avx2() -> bool {
     }
 }
 
+/// Whether the AVX-512 builds (F, BW, DQ, VL) of the kernels that have one may run (as
+/// [`use_avx2`]).
+#[inline]
+pub(crate) fn use_avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        !FORCE_PORTABLE.load(Ordering::Relaxed)
+            && std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::arch::is_x86_feature_detected!("avx512dq")
+            && std::arch::is_x86_feature_detected!("avx512vl")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -12,7 +12,8 @@
 
 use rayon::prelude::*;
 
-use super::intersect::{Hit, Ray, V3};
+use super::intersect::{Hit, Ray, Ray8, K8, V3};
+use crate::simd::{lanes, LANES};
 
 /// Subtrees with more triangles build their children in parallel.
 pub const PARALLEL_MIN: usize = 4096;
@@ -287,6 +288,78 @@ impl Bvh {
             hit
         });
         hit
+    }
+
+    /// [`Bvh::slab`] lane by lane: the lanes of `m` whose ray enters `b`.
+    #[inline(always)]
+    fn slab8(b: &Aabb, r: &Ray8, t_max: f64, m: K8) -> K8 {
+        let mut t0 = [0.0f64; LANES];
+        let mut t1 = [t_max; LANES];
+        for k in 0..3 {
+            let a = lanes(|i| (b.lo[k] - r.origin[k][i]) * r.inv_dir[k][i]);
+            let c = lanes(|i| (b.hi[k] - r.origin[k][i]) * r.inv_dir[k][i]);
+            t0 = lanes(|i| {
+                let n = if a[i] <= c[i] { a[i] } else { c[i] };
+                if n > t0[i] {
+                    n
+                } else {
+                    t0[i]
+                }
+            });
+            t1 = lanes(|i| {
+                let f = if a[i] <= c[i] { c[i] } else { a[i] };
+                if f < t1[i] {
+                    f
+                } else {
+                    t1[i]
+                }
+            });
+        }
+        lanes(|i| m[i] && t0[i] <= t1[i] * (1.0 + 4.0 * f64::EPSILON) && t0[i].is_finite())
+    }
+
+    /// [`Bvh::occluded`] for the `active` rays of a packet: which are blocked. A node is
+    /// visited while any lane's own slab test enters it, with the other lanes masked off, so
+    /// each lane tests exactly the triangles its scalar ray would (the scalar walk's entry
+    /// distance check never prunes here: nothing lowers `t_max` while looking for any hit).
+    #[inline(always)]
+    pub fn occluded8(&self, r: &Ray8, t_min: f64, t_max: f64, active: K8) -> K8 {
+        let mut blocked = [false; LANES];
+        let Some(root) = self.nodes.first() else {
+            return blocked;
+        };
+        let t_far = [t_max; LANES];
+        let mut stack = [(0u32, [false; LANES]); 64];
+        stack[0] = (0, Self::slab8(&root.bounds, r, t_max, active));
+        let mut sp = 1;
+        while sp > 0 {
+            sp -= 1;
+            let (at, m) = stack[sp];
+            let m = lanes(|i| m[i] && !blocked[i]);
+            if !m.contains(&true) {
+                continue;
+            }
+            let n = &self.nodes[at as usize];
+            if n.count > 0 {
+                for slot in n.index..n.index + n.count {
+                    let live = lanes(|i| m[i] && !blocked[i]);
+                    if !live.contains(&true) {
+                        break;
+                    }
+                    let (hit, _, _) = r.intersect(&self.tris[slot as usize], t_min, &t_far, live);
+                    blocked = lanes(|i| blocked[i] || hit[i]);
+                }
+                continue;
+            }
+            for c in [at + 1, n.index] {
+                let mc = Self::slab8(&self.nodes[c as usize].bounds, r, t_max, m);
+                if mc.contains(&true) && sp < stack.len() {
+                    stack[sp] = (c, mc);
+                    sp += 1;
+                }
+            }
+        }
+        blocked
     }
 
     /// Front-to-back traversal; `leaf(slot, t_far)` returns true to stop. Each stacked node

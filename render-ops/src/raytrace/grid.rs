@@ -15,7 +15,8 @@ use std::sync::OnceLock;
 use rayon::prelude::*;
 
 use super::bvh::Bvh;
-use super::intersect::{Hit, Ray, V3};
+use super::intersect::{Hit, Ray, Ray8, D8, K8, V3};
+use crate::simd::{lanes, LANES};
 
 /// Relative slack of the projected boxes and of the least depths (rounding of the watertight
 /// test is below `1e-15` relative to the coordinates).
@@ -249,6 +250,78 @@ impl ScreenGrid {
             }
         }
         best
+    }
+
+    /// [`ScreenGrid::closest`] for the `active` camera rays of a packet through pixel points
+    /// `u`: per lane the face hit (`u32::MAX` for none), its `t` and barycentrics. Lanes in
+    /// one tile walk its list together, each with its own early exit and tie rule, so each
+    /// gets its scalar ray's hit. `None` when an active point is outside the image (the caller
+    /// traces the scalar rays).
+    #[inline(always)]
+    pub fn closest8(
+        &self,
+        r: &Ray8,
+        u: &[D8; 2],
+        t_min: f64,
+        t_max: f64,
+        active: K8,
+    ) -> Option<([u32; LANES], D8, [D8; 3])> {
+        let inside = |i: usize| {
+            u[0][i] >= 0.0 && u[0][i] <= self.width && u[1][i] >= 0.0 && u[1][i] <= self.height
+        };
+        if (0..LANES).any(|i| active[i] && !inside(i)) {
+            return None;
+        }
+        let tile = lanes(|i| {
+            let tx = ((u[0][i] / self.tile) as usize).min(self.tiles_x - 1);
+            let ty = ((u[1][i] / self.tile) as usize).min(self.tiles_y - 1);
+            ty * self.tiles_x + tx
+        });
+        let mut face = [u32::MAX; LANES];
+        let mut best = [f64::INFINITY; LANES];
+        let mut bary = [[0.0; LANES]; 3];
+        let mut todo = active;
+        while let Some(first) = todo.iter().position(|&a| a) {
+            let ti = tile[first];
+            let mine = lanes(|i| todo[i] && tile[i] == ti);
+            todo = lanes(|i| todo[i] && !mine[i]);
+            let list = &self.entries[self.start[ti] as usize..self.start[ti + 1] as usize];
+            let mut t_far = [t_max; LANES];
+            for e in list {
+                let near = lanes(|i| mine[i] && !(e.z > t_far[i]));
+                if !near.contains(&true) {
+                    break;
+                }
+                let b = &e.bbox;
+                let test = lanes(|i| {
+                    near[i]
+                        && !(u[0][i] < b[0] || u[0][i] > b[1] || u[1][i] < b[2] || u[1][i] > b[3])
+                });
+                if !test.contains(&true) {
+                    continue;
+                }
+                let lim = lanes(|i| t_far[i].next_up());
+                let (hit, t, bb) = r.intersect(&self.tris[e.face as usize], t_min, &lim, test);
+                // `Hit::keep_if_nearer`, lane by lane.
+                let keep = lanes(|i| {
+                    let nearer = face[i] == u32::MAX
+                        || t[i] < best[i]
+                        || (t[i] == best[i] && e.face < face[i]);
+                    hit[i] && nearer && t[i] < t_max
+                });
+                for i in 0..LANES {
+                    if keep[i] {
+                        face[i] = e.face;
+                        best[i] = t[i];
+                        t_far[i] = t[i];
+                        for (k, bk) in bary.iter_mut().enumerate() {
+                            bk[i] = bb[k][i];
+                        }
+                    }
+                }
+            }
+        }
+        Some((face, best, bary))
     }
 }
 

@@ -5,6 +5,8 @@
 //! functions exactly zero count as inside). Everything is in `f64` (the paper's fallback
 //! precision), so no second evaluation is needed.
 
+use crate::simd::{arr3, lanes, LANES};
+
 /// A vector of three `f64`.
 pub type V3 = [f64; 3];
 
@@ -52,19 +54,7 @@ impl Hit {
 impl Ray {
     /// A ray from `origin` along `dir` (non-zero).
     pub fn new(origin: V3, dir: V3) -> Self {
-        let a = dir.map(f64::abs);
-        let kz = if a[0] >= a[1] && a[0] >= a[2] {
-            0
-        } else if a[1] >= a[2] {
-            1
-        } else {
-            2
-        };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
-        if dir[kz] < 0.0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
+        let [kx, ky, kz] = axes(dir);
         let inv_dir = dir.map(|d| 1.0 / d);
         let sz = inv_dir[kz];
         Ray {
@@ -117,6 +107,139 @@ impl Ray {
             return None;
         }
         Some((t, [u / det, vv / det, w / det]))
+    }
+}
+
+/// Eight `f64` lanes of a ray packet (one value per ray).
+pub type D8 = [f64; LANES];
+/// Eight lane flags.
+pub type K8 = [bool; LANES];
+
+/// Eight rays that share the axis permutation of the watertight test (camera rays through a
+/// few neighbouring pixels, shadow rays towards one light), each lane the [`Ray`] of the same
+/// origin and direction: the packet's tests are the scalar ones lane by lane, so they give the
+/// same bits (the forward's packets, [`super::packet`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Ray8 {
+    /// Origins (x, y, z lanes).
+    pub origin: [D8; 3],
+    /// Directions.
+    pub dir: [D8; 3],
+    /// `1 / dir` per axis.
+    pub inv_dir: [D8; 3],
+    k: [usize; 3],
+    shear: [D8; 3],
+}
+
+/// The axis permutation `[kx, ky, kz]` of the shear for direction `d`: `kz` the dominant axis,
+/// `kx, ky` swapped where `d` runs towards `-kz` (keeps the triangles' winding).
+#[inline(always)]
+fn axes(d: V3) -> [usize; 3] {
+    let a = d.map(f64::abs);
+    let kz = if a[0] >= a[1] && a[0] >= a[2] {
+        0
+    } else if a[1] >= a[2] {
+        1
+    } else {
+        2
+    };
+    let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
+    if d[kz] < 0.0 {
+        [ky, kx, kz]
+    } else {
+        [kx, ky, kz]
+    }
+}
+
+impl Ray8 {
+    /// The rays of the `active` lanes (the others copy the first active one); `None` when
+    /// their axis permutations differ (the caller takes the scalar rays) or no lane is active.
+    #[inline(always)]
+    pub fn new(origin: [D8; 3], dir: [D8; 3], active: K8) -> Option<Self> {
+        let first = active.iter().position(|&a| a)?;
+        let pick = |v: &[D8; 3]| arr3(|a| lanes(|i| v[a][if active[i] { i } else { first }]));
+        let (origin, dir) = (pick(&origin), pick(&dir));
+        // `axes` lane by lane, as one small code per lane (dominant axis, sign).
+        let code = lanes(|i| {
+            let a = [dir[0][i].abs(), dir[1][i].abs(), dir[2][i].abs()];
+            let (x, y) = (a[0] >= a[1] && a[0] >= a[2], a[1] >= a[2]);
+            let kz = if x {
+                0
+            } else if y {
+                1
+            } else {
+                2
+            };
+            let neg = if x {
+                dir[0][i] < 0.0
+            } else if y {
+                dir[1][i] < 0.0
+            } else {
+                dir[2][i] < 0.0
+            };
+            2 * kz + neg as u32
+        });
+        if code.iter().any(|&c| c != code[0]) {
+            return None;
+        }
+        let k = axes([dir[0][first], dir[1][first], dir[2][first]]);
+        let inv_dir = arr3(|a| lanes(|i| 1.0 / dir[a][i]));
+        let sz = inv_dir[k[2]];
+        Some(Ray8 {
+            origin,
+            dir,
+            inv_dir,
+            k,
+            shear: [
+                lanes(|i| dir[k[0]][i] * sz[i]),
+                lanes(|i| dir[k[1]][i] * sz[i]),
+                sz,
+            ],
+        })
+    }
+
+    /// Vertex `p` in each lane's sheared frame.
+    #[inline(always)]
+    fn rel(&self, p: &V3) -> (D8, D8, D8) {
+        let [kx, ky, kz] = self.k;
+        let [sx, sy, sz] = &self.shear;
+        let o = &self.origin;
+        let a: [D8; 3] = arr3(|j| lanes(|i| p[j] - o[j][i]));
+        (
+            lanes(|i| a[kx][i] - sx[i] * a[kz][i]),
+            lanes(|i| a[ky][i] - sy[i] * a[kz][i]),
+            lanes(|i| sz[i] * a[kz][i]),
+        )
+    }
+
+    /// [`Ray::intersect`] lane by lane for the `active` lanes: which hit, their `t` and
+    /// barycentrics (unspecified in the other lanes).
+    #[inline(always)]
+    pub fn intersect(&self, v: &[V3; 3], t_min: f64, t_max: &D8, active: K8) -> (K8, D8, [D8; 3]) {
+        let (ax, ay, az) = self.rel(&v[0]);
+        let (bx, by, bz) = self.rel(&v[1]);
+        let (cx, cy, cz) = self.rel(&v[2]);
+        let u = lanes(|i| cx[i] * by[i] - cy[i] * bx[i]);
+        let vv = lanes(|i| ax[i] * cy[i] - ay[i] * cx[i]);
+        let w = lanes(|i| bx[i] * ay[i] - by[i] * ax[i]);
+        let det = lanes(|i| u[i] + vv[i] + w[i]);
+        let t = lanes(|i| (u[i] * az[i] + vv[i] * bz[i] + w[i] * cz[i]) / det[i]);
+        let hit = lanes(|i| {
+            let out = (u[i] < 0.0 || vv[i] < 0.0 || w[i] < 0.0)
+                && (u[i] > 0.0 || vv[i] > 0.0 || w[i] > 0.0);
+            active[i]
+                && !out
+                && det[i] != 0.0
+                && det[i].is_finite()
+                && t[i] > t_min
+                && t[i] < t_max[i]
+        });
+        let bary = [
+            lanes(|i| u[i] / det[i]),
+            lanes(|i| vv[i] / det[i]),
+            lanes(|i| w[i] / det[i]),
+        ];
+        (hit, t, bary)
     }
 }
 

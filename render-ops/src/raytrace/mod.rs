@@ -17,7 +17,9 @@
 //! sample) against a BVH of the world-space triangles ([`bvh`], watertight tests of
 //! [`intersect`]). SH lighting is unshadowed. The emitter of an area light is not visible to the
 //! camera. Random numbers are counter-based ([`rng`]): a render is a function of its inputs and
-//! `seed`, the same for any thread count.
+//! `seed`, the same for any thread count. The forward traces and shades a row's samples eight
+//! at a time (`packet`) with the scalar sample's arithmetic in every lane: the same image, bit
+//! for bit, as one sample at a time (which the backward re-traces).
 //!
 //! # Backward
 //! * Interior: every sample's colour is differentiated through the shading (point, normals,
@@ -67,6 +69,7 @@ pub mod shading;
 pub mod stage;
 
 mod op;
+mod packet;
 
 pub use op::{raytrace, RaytraceSettings};
 pub use shading::{LightKind, Reflection};

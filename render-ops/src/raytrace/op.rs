@@ -223,22 +223,22 @@ pub(super) fn rows<T: Real, const N: usize, S: ndarray::Data<Elem = T>>(
 pub(super) struct Scene<'a> {
     pub(super) s: &'a RaytraceSettings,
     pub(super) faces: &'a [[u32; 3]],
-    q: Vec<V3>,
-    clip: Vec<[f64; 4]>,
+    pub(super) q: Vec<V3>,
+    pub(super) clip: Vec<[f64; 4]>,
     pub(super) world: Vec<V3>,
-    normals: Vec<V3>,
-    albedo: Vec<V3>,
+    pub(super) normals: Vec<V3>,
+    pub(super) albedo: Vec<V3>,
     pub(super) light_rows: Vec<V3>,
-    primary: ScreenGrid,
-    shadow: Option<Bvh>,
+    pub(super) primary: ScreenGrid,
+    pub(super) shadow: Option<Bvh>,
     /// Scale of the world coordinates (shadow-ray offsets).
-    scale: f64,
+    pub(super) scale: f64,
     /// Strata per pixel ([`RaytraceSettings::strata`]) and the pixel samples' stream key.
     strata: (usize, usize),
     pixel_key: u64,
     /// `shading: none` and no lights: the colour is the albedo, and nothing reads a hit's
     /// point or normals.
-    unlit: bool,
+    pub(super) unlit: bool,
 }
 
 /// Per-chunk gradient accumulators (dense per vertex; only the wanted inputs allocated): clip,
@@ -348,7 +348,7 @@ impl<'a> Scene<'a> {
         Scene::build(s, faces, clip, world, Vec::new(), Vec::new(), light_rows)
     }
 
-    fn build(
+    pub(super) fn build(
         s: &'a RaytraceSettings,
         faces: &'a [[u32; 3]],
         clip: Vec<[f64; 4]>,
@@ -491,7 +491,7 @@ impl<'a> Scene<'a> {
     /// The radiance (RGB, coverage) of the primary ray through `u`, with the area lights
     /// sampled from `ctr`; with `grad`, the gradient of `g . value` of the interior terms
     /// (and, for `area_edges`, the area-light edge terms of this sample) into `acc`.
-    fn radiance(
+    pub(super) fn radiance(
         &self,
         lights: &LightSet<'_>,
         u: [f64; 2],
@@ -1073,22 +1073,17 @@ impl<T: Real> Op<T> for RaytraceOp {
         let (w, h, spp) = (self.s.width, self.s.height, self.s.spp);
         let lights = sc.lights();
         let mut img = vec![T::zero(); h * w * 4];
-        img.par_chunks_mut(w * 4).enumerate().for_each(|(r, row)| {
-            for c in 0..w {
-                let pix = r * w + c;
-                let mut sum = [0.0; 4];
-                for k in 0..spp {
-                    let (u, ctr) = sc.sample(pix, k);
-                    let v = sc.radiance(&lights, u, ctr, None, None);
+        img.par_chunks_mut(w * 4).enumerate().for_each_init(
+            || vec![[0.0; 4]; w],
+            |sums, (r, row)| {
+                sc.row_sums(&lights, r, sums);
+                for (px, sum) in row.chunks_exact_mut(4).zip(sums.iter()) {
                     for ch in 0..4 {
-                        sum[ch] += v[ch];
+                        px[ch] = T::from_f64c(sum[ch] / spp as f64);
                     }
                 }
-                for ch in 0..4 {
-                    row[c * 4 + ch] = T::from_f64c(sum[ch] / spp as f64);
-                }
-            }
-        });
+            },
+        );
         Ok(vec![
             ArrayD::from_shape_vec(IxDyn(&[h, w, 4]), img).expect("h x w x 4")
         ])

@@ -173,7 +173,7 @@ pub struct LightSet<'a> {
     pub n_area: usize,
     /// Per light, for directional ones: the unit direction towards the light and the row's
     /// length (the same for every shading point, so normalised once per set).
-    toward: SmallVec<[(V3, f64); 8]>,
+    pub(super) toward: SmallVec<[(V3, f64); 8]>,
 }
 
 impl<'a> LightSet<'a> {
