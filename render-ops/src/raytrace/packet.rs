@@ -450,9 +450,23 @@ mod tests {
     /// returns the share of packets that went as packets (0 when the scene has no packet path).
     fn packet_share(s: &RaytraceSettings, subdiv: u32, rows: Vec<V3>) -> f64 {
         let (pos, faces, normals, albedo) = scene(subdiv);
+        let view = ([0.3, 2.8, 4.0], [0.0, 0.7, 0.0]);
+        compare(s, &pos, &faces, normals, albedo, rows, view)
+    }
+
+    /// [`packet_share`] of any scene, seen from `view = (eye, at)`.
+    fn compare(
+        s: &RaytraceSettings,
+        pos: &[V3],
+        faces: &[[u32; 3]],
+        normals: Vec<V3>,
+        albedo: Vec<V3>,
+        rows: Vec<V3>,
+        view: (V3, V3),
+    ) -> f64 {
         let cam = Camera::perspective_look_at(
-            [0.3, 2.8, 4.0],
-            [0.0, 0.7, 0.0],
+            view.0,
+            view.1,
             [0.0, 1.0, 0.0],
             50f64.to_radians(),
             s.width as f64 / s.height as f64,
@@ -461,7 +475,7 @@ mod tests {
         )
         .unwrap();
         let clip = pos.iter().map(|p| cam.project(*p)).collect();
-        let sc = Scene::build(s, &faces, clip, pos.clone(), normals, albedo, rows);
+        let sc = Scene::build(s, faces, clip, pos.to_vec(), normals, albedo, rows);
         let lights = sc.lights();
         let (w, spp) = (s.width, s.spp);
         for portable in [false, true] {
@@ -550,6 +564,74 @@ mod tests {
         let mut s = settings(Shading::Lambert, 4, kinds);
         s.reflection.ka = Some([0.2, 0.4, 0.6]);
         assert!(packet_share(&s, 4, rows) > 0.95);
+    }
+
+    #[test]
+    fn random_soups_and_lights_give_the_scalar_bits() {
+        use crate::raytrace::bvh::tests::soup_around;
+        use crate::raytrace::rng::Stream;
+        let mut c = Counter::new(11, Stream::Pixel, 0);
+        let mut u = move || c.uniform();
+        for case in 0..24usize {
+            let (pos, faces) = soup_around(10 + 20 * case, case as u64, |c, _| {
+                let p = [
+                    4.0 * c.uniform() - 2.0,
+                    2.0 * c.uniform(),
+                    4.0 * c.uniform() - 2.0,
+                ];
+                (p, 0.05 + 2.0 * c.uniform())
+            });
+            // Normals of any length (some zero), albedo in [0, 1].
+            let normals = (0..pos.len())
+                .map(|i| {
+                    if i % 7 == 0 {
+                        [0.0; 3]
+                    } else {
+                        [u() - 0.5, u(), u() - 0.5]
+                    }
+                })
+                .collect();
+            let albedo = (0..pos.len()).map(|_| [u(), u(), u()]).collect();
+            let shading = [
+                Shading::None,
+                Shading::Lambert,
+                Shading::Phong,
+                Shading::BlinnPhong,
+            ][case % 4];
+            let mut kinds = vec![LightKind::Ambient];
+            let mut rows = vec![[0.1, 0.1, 0.1]];
+            if case % 3 != 0 {
+                kinds.push(LightKind::Directional);
+                rows.extend([[u() - 0.5, -1.0, u() - 0.5], [1.0, 0.9, 0.8]]);
+            }
+            if case % 2 == 0 {
+                // Among the triangles: shadow rays in every direction.
+                kinds.push(LightKind::Point);
+                rows.extend([[u() - 0.5, 0.5 + u(), u() - 0.5], [0.8, 0.8, 0.8]]);
+            }
+            if case % 5 < 2 {
+                kinds.push(LightKind::Area);
+                rows.extend([
+                    [-0.5, 2.5, -0.5],
+                    [1.0, 0.0, 0.0],
+                    [0.0, 0.0, 1.0],
+                    [3.0; 3],
+                ]);
+            }
+            let mut s = settings(shading, 1 + case % 5, kinds);
+            (s.width, s.height) = (5 + case % 11, 4 + (3 * case) % 13);
+            s.seed = case as u64;
+            let eye = [6.0 * u() - 3.0, 1.0 + 3.0 * u(), 2.5 + 2.0 * u()];
+            compare(
+                &s,
+                &pos,
+                &faces,
+                normals,
+                albedo,
+                rows,
+                (eye, [0.0, 0.8, 0.0]),
+            );
+        }
     }
 
     #[test]
