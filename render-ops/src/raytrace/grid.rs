@@ -272,10 +272,13 @@ impl ScreenGrid {
         if (0..LANES).any(|i| active[i] && !inside(i)) {
             return None;
         }
+        // `closest`'s tile index, in `f64` lanes (for `0 <= u`, `as usize` truncates, and the
+        // indices are integers far below 2^53): one conversion per tile, not per lane.
+        let (nx, ny) = (self.tiles_x as f64, self.tiles_y as f64);
         let tile = lanes(|i| {
-            let tx = ((u[0][i] / self.tile) as usize).min(self.tiles_x - 1);
-            let ty = ((u[1][i] / self.tile) as usize).min(self.tiles_y - 1);
-            ty * self.tiles_x + tx
+            let tx = (u[0][i] / self.tile).trunc().min(nx - 1.0);
+            let ty = (u[1][i] / self.tile).trunc().min(ny - 1.0);
+            ty * nx + tx
         });
         let mut face = [u32::MAX; LANES];
         let mut best = [f64::INFINITY; LANES];
@@ -285,6 +288,7 @@ impl ScreenGrid {
             let ti = tile[first];
             let mine = lanes(|i| todo[i] && tile[i] == ti);
             todo = lanes(|i| todo[i] && !mine[i]);
+            let ti = ti as usize;
             let list = &self.entries[self.start[ti] as usize..self.start[ti + 1] as usize];
             let mut t_far = [t_max; LANES];
             for e in list {

@@ -129,6 +129,8 @@ pub struct Ray8 {
     pub inv_dir: [D8; 3],
     k: [usize; 3],
     shear: [D8; 3],
+    /// The origins' coordinates in shear order `(kx, ky, kz)` (lanes indexed statically).
+    o_k: [D8; 3],
 }
 
 /// The axis permutation `[kx, ky, kz]` of the shear for direction `d`: `kz` the dominant axis,
@@ -189,6 +191,7 @@ impl Ray8 {
             origin,
             dir,
             inv_dir,
+            o_k: k.map(|a| origin[a]),
             k,
             shear: [
                 lanes(|i| dir[k[0]][i] * sz[i]),
@@ -203,12 +206,12 @@ impl Ray8 {
     fn rel(&self, p: &V3) -> (D8, D8, D8) {
         let [kx, ky, kz] = self.k;
         let [sx, sy, sz] = &self.shear;
-        let o = &self.origin;
-        let a: [D8; 3] = arr3(|j| lanes(|i| p[j] - o[j][i]));
+        let [ox, oy, oz] = &self.o_k;
+        let az = lanes(|i| p[kz] - oz[i]);
         (
-            lanes(|i| a[kx][i] - sx[i] * a[kz][i]),
-            lanes(|i| a[ky][i] - sy[i] * a[kz][i]),
-            lanes(|i| sz[i] * a[kz][i]),
+            lanes(|i| (p[kx] - ox[i]) - sx[i] * az[i]),
+            lanes(|i| (p[ky] - oy[i]) - sy[i] * az[i]),
+            lanes(|i| sz[i] * az[i]),
         )
     }
 
