@@ -315,7 +315,7 @@ impl Bvh {
                 }
             });
         }
-        lanes(|i| m[i] && t0[i] <= t1[i] * (1.0 + 4.0 * f64::EPSILON) && t0[i].is_finite())
+        lanes(|i| m[i] & (t0[i] <= t1[i] * (1.0 + 4.0 * f64::EPSILON)) & t0[i].is_finite())
     }
 
     /// [`Bvh::occluded`] for the `active` rays of a packet: which are blocked. A node is
@@ -335,19 +335,19 @@ impl Bvh {
         while sp > 0 {
             sp -= 1;
             let (at, m) = stack[sp];
-            let m = lanes(|i| m[i] && !blocked[i]);
+            let m = lanes(|i| m[i] & !blocked[i]);
             if !m.contains(&true) {
                 continue;
             }
             let n = &self.nodes[at as usize];
             if n.count > 0 {
                 for slot in n.index..n.index + n.count {
-                    let live = lanes(|i| m[i] && !blocked[i]);
+                    let live = lanes(|i| m[i] & !blocked[i]);
                     if !live.contains(&true) {
                         break;
                     }
                     let (hit, _, _) = r.intersect(&self.tris[slot as usize], t_min, &t_far, live);
-                    blocked = lanes(|i| blocked[i] || hit[i]);
+                    blocked = lanes(|i| blocked[i] | hit[i]);
                 }
                 continue;
             }

@@ -292,14 +292,17 @@ impl ScreenGrid {
             let list = &self.entries[self.start[ti] as usize..self.start[ti + 1] as usize];
             let mut t_far = [t_max; LANES];
             for e in list {
-                let near = lanes(|i| mine[i] && !(e.z > t_far[i]));
+                let near = lanes(|i| mine[i] & !(e.z > t_far[i]));
                 if !near.contains(&true) {
                     break;
                 }
                 let b = &e.bbox;
                 let test = lanes(|i| {
                     near[i]
-                        && !(u[0][i] < b[0] || u[0][i] > b[1] || u[1][i] < b[2] || u[1][i] > b[3])
+                        & !((u[0][i] < b[0])
+                            | (u[0][i] > b[1])
+                            | (u[1][i] < b[2])
+                            | (u[1][i] > b[3]))
                 });
                 if !test.contains(&true) {
                     continue;
@@ -308,10 +311,10 @@ impl ScreenGrid {
                 let (hit, t, bb) = r.intersect(&self.tris[e.face as usize], t_min, &lim, test);
                 // `Hit::keep_if_nearer`, lane by lane.
                 let keep = lanes(|i| {
-                    let nearer = face[i] == u32::MAX
-                        || t[i] < best[i]
-                        || (t[i] == best[i] && e.face < face[i]);
-                    hit[i] && nearer && t[i] < t_max
+                    let nearer = (face[i] == u32::MAX)
+                        | (t[i] < best[i])
+                        | ((t[i] == best[i]) & (e.face < face[i]));
+                    hit[i] & nearer & (t[i] < t_max)
                 });
                 for i in 0..LANES {
                     if keep[i] {

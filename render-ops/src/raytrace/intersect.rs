@@ -159,8 +159,12 @@ impl Ray8 {
     #[inline(always)]
     pub fn new(origin: [D8; 3], dir: [D8; 3], active: K8) -> Option<Self> {
         let first = active.iter().position(|&a| a)?;
-        let pick = |v: &[D8; 3]| arr3(|a| lanes(|i| v[a][if active[i] { i } else { first }]));
-        let (origin, dir) = (pick(&origin), pick(&dir));
+        let (origin, dir) = if active.contains(&false) {
+            let pick = |v: &[D8; 3]| arr3(|a| lanes(|i| v[a][if active[i] { i } else { first }]));
+            (pick(&origin), pick(&dir))
+        } else {
+            (origin, dir)
+        };
         // `axes` lane by lane, as one small code per lane (dominant axis, sign).
         let code = lanes(|i| {
             let a = [dir[0][i].abs(), dir[1][i].abs(), dir[2][i].abs()];
@@ -227,15 +231,16 @@ impl Ray8 {
         let w = lanes(|i| bx[i] * ay[i] - by[i] * ax[i]);
         let det = lanes(|i| u[i] + vv[i] + w[i]);
         let t = lanes(|i| (u[i] * az[i] + vv[i] * bz[i] + w[i] * cz[i]) / det[i]);
+        // Branch-free lane masks (`&`, `|`: every operand is a plain comparison).
         let hit = lanes(|i| {
-            let out = (u[i] < 0.0 || vv[i] < 0.0 || w[i] < 0.0)
-                && (u[i] > 0.0 || vv[i] > 0.0 || w[i] > 0.0);
+            let out = ((u[i] < 0.0) | (vv[i] < 0.0) | (w[i] < 0.0))
+                & ((u[i] > 0.0) | (vv[i] > 0.0) | (w[i] > 0.0));
             active[i]
-                && !out
-                && det[i] != 0.0
-                && det[i].is_finite()
-                && t[i] > t_min
-                && t[i] < t_max[i]
+                & !out
+                & (det[i] != 0.0)
+                & det[i].is_finite()
+                & (t[i] > t_min)
+                & (t[i] < t_max[i])
         });
         let bary = [
             lanes(|i| u[i] / det[i]),

@@ -298,7 +298,7 @@ impl Scene<'_> {
                         (normalize(&sub(&p, x)).0, Shadow8::Toward(p))
                     };
                     let ndl = dot(&n, &l);
-                    let facing = lanes(|i| hit[i] && !(ndl[i] <= 0.0));
+                    let facing = lanes(|i| hit[i] & !(ndl[i] <= 0.0));
                     (l, q, splat(rows[o + 1]), ndl, facing)
                 }
                 LightKind::Area => {
@@ -315,8 +315,9 @@ impl Scene<'_> {
                     let nl = splat(cross3(rows[o + 1], rows[o + 2]));
                     let kk = lanes(|i| -dot(&nl, &lraw)[i]);
                     let ndl = dot(&n, &l);
-                    let facing =
-                        lanes(|i| hit[i] && !(kk[i] <= 0.0 || rl[i] <= SAFE_EPS || ndl[i] <= 0.0));
+                    let facing = lanes(|i| {
+                        hit[i] & !((kk[i] <= 0.0) | (rl[i] <= SAFE_EPS) | (ndl[i] <= 0.0))
+                    });
                     let f = lanes(|i| kk[i] / (rl[i] * rl[i] * rl[i]));
                     let c = arr3(|k| lanes(|i| rows[o + 3][k] * f[i]));
                     (l, Shadow8::Toward(lp), c, ndl, facing)
@@ -327,7 +328,7 @@ impl Scene<'_> {
                 continue;
             }
             let vis = self.visible8(x, &ng, q, facing);
-            let on = lanes(|i| facing[i] && vis[i]);
+            let on = lanes(|i| facing[i] & vis[i]);
             if !any(on) {
                 continue;
             }
@@ -379,7 +380,7 @@ impl Scene<'_> {
             Shadow8::Along(d) => splat(d),
         };
         let len2 = dot(&dir, &dir);
-        let cast = lanes(|i| want[i] && len2[i] != 0.0);
+        let cast = lanes(|i| want[i] & (len2[i] != 0.0));
         if !any(cast) {
             return [true; LANES];
         }
