@@ -234,7 +234,7 @@ pub(super) struct Scene<'a> {
     /// Scale of the world coordinates (shadow-ray offsets).
     pub(super) scale: f64,
     /// Strata per pixel ([`RaytraceSettings::strata`]) and the pixel samples' stream key.
-    strata: (usize, usize),
+    pub(super) strata: (usize, usize),
     pixel_key: u64,
     /// `shading: none` and no lights: the colour is the albedo, and nothing reads a hit's
     /// point or normals.
@@ -393,13 +393,26 @@ impl<'a> Scene<'a> {
     /// sample's stratum (`sx x sy` strata per pixel), the counter left at the sample's next
     /// dimension (the area lights' samples).
     pub(super) fn sample(&self, pix: usize, k: usize) -> ([f64; 2], Counter) {
+        let (sx, w) = (self.strata.0, self.s.width);
+        self.sample_at(pix / w, pix % w, k, (k % sx, k / sx))
+    }
+
+    /// [`Scene::sample`] of sample `k` of the pixel in row `r`, column `c`, whose stratum
+    /// `(k % sx, k / sx)` is given (the packets step through them without dividing).
+    #[inline(always)]
+    pub(super) fn sample_at(
+        &self,
+        r: usize,
+        c: usize,
+        k: usize,
+        stratum: (usize, usize),
+    ) -> ([f64; 2], Counter) {
         let (sx, sy) = self.strata;
-        let w = self.s.width;
-        let (r, c) = (pix / w, pix % w);
+        let pix = r * self.s.width + c;
         let mut ctr = Counter::at(self.pixel_key, (pix * self.s.spp + k) as u64);
         let u = [
-            c as f64 + ((k % sx) as f64 + ctr.uniform()) / sx as f64,
-            r as f64 + ((k / sx) as f64 + ctr.uniform()) / sy as f64,
+            c as f64 + (stratum.0 as f64 + ctr.uniform()) / sx as f64,
+            r as f64 + (stratum.1 as f64 + ctr.uniform()) / sy as f64,
         ];
         (u, ctr)
     }

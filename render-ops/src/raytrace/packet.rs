@@ -150,15 +150,25 @@ impl Scene<'_> {
         let (w, spp) = (self.s.width, self.s.spp);
         let n = w * spp;
         let packets = self.packets(lights);
+        let sx = self.strata.0;
         sums.fill([0.0; 4]);
+        // The next sample: its column, index in the pixel, and stratum (no divisions).
+        let (mut c, mut k, mut kx, mut ky) = (0, 0, 0, 0);
         for s0 in (0..n).step_by(LANES) {
             let active = lanes(|i| s0 + i < n);
             let mut u = [[0.0; LANES]; 2];
             let mut ctr = [Counter::at(0, 0); LANES];
+            let mut col = [0; LANES];
             for i in (0..LANES).filter(|&i| active[i]) {
-                let s = s0 + i;
-                let (p, c) = self.sample(r * w + s / spp, s % spp);
-                (u[0][i], u[1][i], ctr[i]) = (p[0], p[1], c);
+                let (p, cr) = self.sample_at(r, c, k, (kx, ky));
+                (u[0][i], u[1][i], ctr[i], col[i]) = (p[0], p[1], cr, c);
+                (k, kx) = (k + 1, kx + 1);
+                if kx == sx {
+                    (kx, ky) = (0, ky + 1);
+                }
+                if k == spp {
+                    (c, k, kx, ky) = (c + 1, 0, 0, 0);
+                }
             }
             let packet = if packets {
                 self.radiance8(lights, &u, ctr, active)
@@ -179,7 +189,7 @@ impl Scene<'_> {
                 }
             };
             for i in (0..LANES).filter(|&i| active[i]) {
-                let sum = &mut sums[(s0 + i) / spp];
+                let sum = &mut sums[col[i]];
                 for ch in 0..4 {
                     sum[ch] += v[ch][i];
                 }
