@@ -133,10 +133,9 @@ pub struct Ray8 {
     o_k: [D8; 3],
 }
 
-/// The axis permutation `[kx, ky, kz]` of the shear for direction `d`: `kz` the dominant axis,
-/// `kx, ky` swapped where `d` runs towards `-kz` (keeps the triangles' winding).
+/// The dominant axis of direction `d` and whether `d` runs towards its negative side.
 #[inline(always)]
-fn axes(d: V3) -> [usize; 3] {
+fn dominant(d: V3) -> (usize, bool) {
     let a = d.map(f64::abs);
     let kz = if a[0] >= a[1] && a[0] >= a[2] {
         0
@@ -145,8 +144,16 @@ fn axes(d: V3) -> [usize; 3] {
     } else {
         2
     };
+    (kz, d[kz] < 0.0)
+}
+
+/// The axis permutation `[kx, ky, kz]` of the shear for direction `d`: `kz` the dominant axis,
+/// `kx, ky` swapped where `d` runs towards `-kz` (keeps the triangles' winding).
+#[inline(always)]
+fn axes(d: V3) -> [usize; 3] {
+    let (kz, neg) = dominant(d);
     let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
-    if d[kz] < 0.0 {
+    if neg {
         [ky, kx, kz]
     } else {
         [kx, ky, kz]
@@ -165,25 +172,10 @@ impl Ray8 {
         } else {
             (origin, dir)
         };
-        // `axes` lane by lane, as one small code per lane (dominant axis, sign).
+        // The permutation of each lane, as one small code (dominant axis, sign).
         let code = lanes(|i| {
-            let a = [dir[0][i].abs(), dir[1][i].abs(), dir[2][i].abs()];
-            let (x, y) = (a[0] >= a[1] && a[0] >= a[2], a[1] >= a[2]);
-            let kz = if x {
-                0
-            } else if y {
-                1
-            } else {
-                2
-            };
-            let neg = if x {
-                dir[0][i] < 0.0
-            } else if y {
-                dir[1][i] < 0.0
-            } else {
-                dir[2][i] < 0.0
-            };
-            2 * kz + neg as u32
+            let (kz, neg) = dominant([dir[0][i], dir[1][i], dir[2][i]]);
+            2 * kz as u32 + neg as u32
         });
         if code.iter().any(|&c| c != code[0]) {
             return None;

@@ -29,11 +29,6 @@ use super::shading::{LightKind, LightSet};
 type P3 = [D8; 3];
 
 #[inline(always)]
-fn any(m: K8) -> bool {
-    m.contains(&true)
-}
-
-#[inline(always)]
 fn splat(v: V3) -> P3 {
     arr3(|k| [v[k]; LANES])
 }
@@ -334,12 +329,12 @@ impl Scene<'_> {
                 }
                 LightKind::Sh => continue,
             };
-            if !any(facing) {
+            if !facing.contains(&true) {
                 continue;
             }
             let vis = self.visible8(x, &ng, q, facing);
             let on = lanes(|i| facing[i] & vis[i]);
-            if !any(on) {
+            if !on.contains(&true) {
                 continue;
             }
             // `term`: C (albedo n.l + ks spec).
@@ -391,7 +386,7 @@ impl Scene<'_> {
         };
         let len2 = dot(&dir, &dir);
         let cast = lanes(|i| want[i] & (len2[i] != 0.0));
-        if !any(cast) {
+        if !cast.contains(&true) {
             return [true; LANES];
         }
         let blocked = match Ray8::new(o, dir, cast) {
