@@ -8,7 +8,9 @@
 //! Every operation is an IEEE single-precision operation per lane (no fused multiply-adds, no
 //! reassociation, integer conversions through bit tricks rather than saturating casts), so
 //! the AVX2 build and the portable fallback give bit-identical results; [`set_force_portable`]
-//! makes the kernels take the fallback, for tests.
+//! makes the kernels take the fallback, for tests. The ray tracer's `f64` packets
+//! ([`crate::raytrace`]) use the same lane helpers ([`lanes`], [`arr3`]), built for AVX-512 or
+//! AVX2 by [`avx2_method`]`!(wide ..)`.
 
 use std::ops::{Add, BitAnd, BitOr, Div, Mul, Neg, Not, Sub};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -249,24 +251,50 @@ pub(crate) fn exp8(x: F8) -> F8 {
     }))
 }
 
+/// One instruction-set tier of a dispatched method: runs `$self.$imp(args..)` built with the
+/// tier's target features (`avx512`: F, BW, DQ, VL; `avx2`) and returns, where the CPU has
+/// them (runtime detection, [`use_avx512`] / [`use_avx2`]); else falls through.
+macro_rules! simd_tier {
+    (avx512, $($rest:tt)*) => {
+        $crate::simd::simd_tier!(@ "avx512f,avx512bw,avx512dq,avx512vl", use_avx512, $($rest)*)
+    };
+    (avx2, $($rest:tt)*) => {
+        $crate::simd::simd_tier!(@ "avx2", use_avx2, $($rest)*)
+    };
+    (@ $feat:literal, $detect:ident, $self:ident, $imp:ident, $op:ty, ($($a:ident: $t:ty),*)) => {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = $feat)]
+            fn tier(op: &$op, $($a: $t),*) {
+                op.$imp($($a),*)
+            }
+            if $crate::simd::$detect() {
+                // SAFETY: the CPU has the tier's features (runtime detection in `$detect`).
+                unsafe { tier($self, $($a),*) };
+                return;
+            }
+        }
+    };
+}
+pub(crate) use simd_tier;
+
 /// Defines the method `$entry(&self, args..)` of `$op`, which runs `self.$imp(args..)` built
 /// with AVX2 enabled where the CPU has it ([`use_avx2`]) and as portable code otherwise: the
-/// same source, so the same bits (`$imp` must be `#[inline(always)]`).
+/// same source, so the same bits (`$imp` must be `#[inline(always)]`). `wide` puts an AVX-512
+/// build first ([`use_avx512`]), for kernels in `f64` lanes of eight (one AVX-512 register).
 macro_rules! avx2_method {
     ($(#[$doc:meta])* $vis:vis fn $entry:ident => $imp:ident($($a:ident: $t:ty),* $(,)?) for $op:ty) => {
         $(#[$doc])*
         $vis fn $entry(&self, $($a: $t),*) {
-            #[cfg(target_arch = "x86_64")]
-            #[target_feature(enable = "avx2")]
-            fn avx2(op: &$op, $($a: $t),*) {
-                op.$imp($($a),*)
-            }
-            #[cfg(target_arch = "x86_64")]
-            if $crate::simd::use_avx2() {
-                // SAFETY: the CPU has AVX2 (runtime detection in `use_avx2`).
-                unsafe { avx2(self, $($a),*) };
-                return;
-            }
+            $crate::simd::simd_tier!(avx2, self, $imp, $op, ($($a: $t),*));
+            self.$imp($($a),*)
+        }
+    };
+    (wide $(#[$doc:meta])* $vis:vis fn $entry:ident => $imp:ident($($a:ident: $t:ty),* $(,)?) for $op:ty) => {
+        $(#[$doc])*
+        $vis fn $entry(&self, $($a: $t),*) {
+            $crate::simd::simd_tier!(avx512, self, $imp, $op, ($($a: $t),*));
+            $crate::simd::simd_tier!(avx2, self, $imp, $op, ($($a: $t),*));
             self.$imp($($a),*)
         }
     };

@@ -315,7 +315,9 @@ impl Bvh {
                 }
             });
         }
-        lanes(|i| m[i] & (t0[i] <= t1[i] * (1.0 + 4.0 * f64::EPSILON)) & t0[i].is_finite())
+        // `t0` is never NaN (it only takes values that compare above it), so `< inf` is the
+        // scalar walk's finite test, as a plain comparison.
+        lanes(|i| m[i] & (t0[i] <= t1[i] * (1.0 + 4.0 * f64::EPSILON)) & (t0[i] < f64::INFINITY))
     }
 
     /// [`Bvh::occluded`] for the `active` rays of a packet: which are blocked. A node is
@@ -346,7 +348,7 @@ impl Bvh {
                     if !live.contains(&true) {
                         break;
                     }
-                    let (hit, _, _) = r.intersect(&self.tris[slot as usize], t_min, &t_far, live);
+                    let (hit, ..) = r.intersect(&self.tris[slot as usize], t_min, &t_far, live);
                     blocked = lanes(|i| blocked[i] | hit[i]);
                 }
                 continue;

@@ -16,7 +16,7 @@ use rayon::prelude::*;
 
 use super::bvh::Bvh;
 use super::intersect::{Hit, Ray, Ray8, D8, K8, V3};
-use crate::simd::{lanes, LANES};
+use crate::simd::{arr3, lanes, LANES};
 
 /// Relative slack of the projected boxes and of the least depths (rounding of the watertight
 /// test is below `1e-15` relative to the coordinates).
@@ -282,7 +282,9 @@ impl ScreenGrid {
         });
         let mut face = [u32::MAX; LANES];
         let mut best = [f64::INFINITY; LANES];
-        let mut bary = [[0.0; LANES]; 3];
+        // The winners' edge functions and their sum (divided once, at the end).
+        let mut edge = [[0.0; LANES]; 3];
+        let mut det = [1.0; LANES];
         let mut todo = active;
         while let Some(first) = todo.iter().position(|&a| a) {
             let ti = tile[first];
@@ -291,6 +293,8 @@ impl ScreenGrid {
             let ti = ti as usize;
             let list = &self.entries[self.start[ti] as usize..self.start[ti + 1] as usize];
             let mut t_far = [t_max; LANES];
+            // `t_far.next_up()`, the test's bound, updated with `t_far`.
+            let mut lim = lanes(|i| t_far[i].next_up());
             for e in list {
                 let near = lanes(|i| mine[i] & !(e.z > t_far[i]));
                 if !near.contains(&true) {
@@ -307,8 +311,7 @@ impl ScreenGrid {
                 if !test.contains(&true) {
                     continue;
                 }
-                let lim = lanes(|i| t_far[i].next_up());
-                let (hit, t, bb) = r.intersect(&self.tris[e.face as usize], t_min, &lim, test);
+                let (hit, t, uvw, d) = r.intersect(&self.tris[e.face as usize], t_min, &lim, test);
                 // `Hit::keep_if_nearer`, lane by lane.
                 let keep = lanes(|i| {
                     let nearer = (face[i] == u32::MAX)
@@ -316,18 +319,18 @@ impl ScreenGrid {
                         | ((t[i] == best[i]) & (e.face < face[i]));
                     hit[i] & nearer & (t[i] < t_max)
                 });
-                for i in 0..LANES {
-                    if keep[i] {
-                        face[i] = e.face;
-                        best[i] = t[i];
-                        t_far[i] = t[i];
-                        for (k, bk) in bary.iter_mut().enumerate() {
-                            bk[i] = bb[k][i];
-                        }
-                    }
+                if !keep.contains(&true) {
+                    continue;
                 }
+                face = lanes(|i| if keep[i] { e.face } else { face[i] });
+                best = lanes(|i| if keep[i] { t[i] } else { best[i] });
+                t_far = lanes(|i| if keep[i] { t[i] } else { t_far[i] });
+                lim = lanes(|i| if keep[i] { t[i].next_up() } else { lim[i] });
+                det = lanes(|i| if keep[i] { d[i] } else { det[i] });
+                edge = arr3(|k| lanes(|i| if keep[i] { uvw[k][i] } else { edge[k][i] }));
             }
         }
+        let bary = arr3(|k| lanes(|i| edge[k][i] / det[i]));
         Some((face, best, bary))
     }
 }

@@ -211,10 +211,18 @@ impl Ray8 {
         )
     }
 
-    /// [`Ray::intersect`] lane by lane for the `active` lanes: which hit, their `t` and
-    /// barycentrics (unspecified in the other lanes).
+    /// [`Ray::intersect`] lane by lane for the `active` lanes (`t_min >= 0`): which hit, their
+    /// `t`, and the edge functions `(U, V, W)` and their sum `det` (the barycentrics are
+    /// `U / det` ..., left to the caller: a closest-hit query divides once, for the winner);
+    /// all unspecified in the other lanes.
     #[inline(always)]
-    pub fn intersect(&self, v: &[V3; 3], t_min: f64, t_max: &D8, active: K8) -> (K8, D8, [D8; 3]) {
+    pub fn intersect(
+        &self,
+        v: &[V3; 3],
+        t_min: f64,
+        t_max: &D8,
+        active: K8,
+    ) -> (K8, D8, [D8; 3], D8) {
         let (ax, ay, az) = self.rel(&v[0]);
         let (bx, by, bz) = self.rel(&v[1]);
         let (cx, cy, cz) = self.rel(&v[2]);
@@ -223,23 +231,17 @@ impl Ray8 {
         let w = lanes(|i| bx[i] * ay[i] - by[i] * ax[i]);
         let det = lanes(|i| u[i] + vv[i] + w[i]);
         let t = lanes(|i| (u[i] * az[i] + vv[i] * bz[i] + w[i] * cz[i]) / det[i]);
-        // Branch-free lane masks (`&`, `|`: every operand is a plain comparison).
+        // Branch-free lane masks (`&`, `|`: every operand is a plain comparison). The scalar
+        // test's `det != 0` and finite `det` need no test of their own when `t_min >= 0`:
+        // otherwise `t` is `+-inf`, `+-0` or NaN, which `t_min < t < t_max` rejects (and
+        // `is_finite` would be lowered lane by lane, to integer code).
+        debug_assert!(t_min >= 0.0);
         let hit = lanes(|i| {
             let out = ((u[i] < 0.0) | (vv[i] < 0.0) | (w[i] < 0.0))
                 & ((u[i] > 0.0) | (vv[i] > 0.0) | (w[i] > 0.0));
-            active[i]
-                & !out
-                & (det[i] != 0.0)
-                & det[i].is_finite()
-                & (t[i] > t_min)
-                & (t[i] < t_max[i])
+            active[i] & !out & (t[i] > t_min) & (t[i] < t_max[i])
         });
-        let bary = [
-            lanes(|i| u[i] / det[i]),
-            lanes(|i| vv[i] / det[i]),
-            lanes(|i| w[i] / det[i]),
-        ];
-        (hit, t, bary)
+        (hit, t, [u, vv, w], det)
     }
 }
 

@@ -17,7 +17,7 @@ use crate::scene::Shading;
 use smallvec::SmallVec;
 
 use crate::shade::{cross3, scale3, SAFE_EPS};
-use crate::simd::{arr3, lanes, LANES};
+use crate::simd::{arr3, avx2_method, lanes, LANES};
 
 use super::edges::face_normal;
 use super::intersect::{Ray, Ray8, D8, K8, V3};
@@ -92,6 +92,72 @@ fn select(m: K8, a: &P3, b: &P3) -> P3 {
     arr3(|k| lanes(|i| if m[i] { a[k][i] } else { b[k][i] }))
 }
 
+/// A packet of a row's samples, in order: pixel points, random numbers (the counter at the
+/// area lights' dimensions) and columns.
+struct Samples8 {
+    u: [D8; 2],
+    ctr: [Counter; LANES],
+    col: [usize; LANES],
+    active: K8,
+}
+
+/// Steps through a row's `width x spp` samples eight at a time: each sample's column, index in
+/// the pixel, and stratum, without dividing.
+struct SampleWalk {
+    s0: usize,
+    n: usize,
+    sx: usize,
+    spp: usize,
+    at: (usize, usize, usize, usize),
+}
+
+impl SampleWalk {
+    fn new(sc: &Scene<'_>) -> Self {
+        SampleWalk {
+            s0: 0,
+            n: sc.s.width * sc.s.spp,
+            sx: sc.strata.0,
+            spp: sc.s.spp,
+            at: (0, 0, 0, 0),
+        }
+    }
+
+    /// The next packet of row `r` (its lanes past the row's end inactive).
+    #[inline(always)]
+    fn next(&mut self, sc: &Scene<'_>, r: usize) -> Option<Samples8> {
+        if self.s0 >= self.n {
+            return None;
+        }
+        let active = lanes(|i| self.s0 + i < self.n);
+        self.s0 += LANES;
+        let mut at = [(0, 0, 0, 0); LANES];
+        for (a, _) in at.iter_mut().zip(active).filter(|&(_, on)| on) {
+            *a = self.at;
+            let (c, k, kx, ky) = self.at;
+            self.at = if k + 1 == self.spp {
+                (c + 1, 0, 0, 0)
+            } else if kx + 1 == self.sx {
+                (c, k + 1, 0, ky + 1)
+            } else {
+                (c, k + 1, kx + 1, ky)
+            };
+        }
+        // The points and numbers lane by lane (no dependence between lanes: the hashes
+        // vectorise). `lanes`, not `array::map`, whose closures may stay out of line, without
+        // the target features.
+        let pc = lanes(|i| {
+            let (c, k, kx, ky) = at[i];
+            sc.sample_at(r, c, k, (kx, ky))
+        });
+        Some(Samples8 {
+            u: [lanes(|i| pc[i].0[0]), lanes(|i| pc[i].0[1])],
+            ctr: lanes(|i| pc[i].1),
+            col: lanes(|i| at[i].0),
+            active,
+        })
+    }
+}
+
 impl Scene<'_> {
     /// Whether every light and the shading model have a packet path (else every sample is
     /// scalar).
@@ -114,77 +180,54 @@ impl Scene<'_> {
                 }))
     }
 
-    /// The sums over each pixel's samples of row `r` (RGB, coverage), added in sample order.
-    pub(super) fn row_sums(&self, lights: &LightSet<'_>, r: usize, sums: &mut [[f64; 4]]) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            #[target_feature(enable = "avx512f,avx512bw,avx512dq,avx512vl")]
-            fn avx512(sc: &Scene<'_>, lights: &LightSet<'_>, r: usize, sums: &mut [[f64; 4]]) {
-                sc.row_sums_lanes(lights, r, sums)
+    avx2_method! {
+        wide
+        /// The sums over each pixel's samples of row `r` (RGB, coverage), added in sample
+        /// order.
+        pub(super) fn row_sums => row_sums_lanes(
+            lights: &LightSet<'_>,
+            r: usize,
+            sums: &mut [[f64; 4]],
+        ) for Scene<'_>
+    }
+
+    /// [`Scene::radiance`] of the samples at `u` in the `active` lanes: as one packet where
+    /// `packets` ([`Scene::packets`]) and the rays allow, else one at a time.
+    #[inline(always)]
+    fn radiance_lanes(
+        &self,
+        lights: &LightSet<'_>,
+        u: &[D8; 2],
+        ctr: [Counter; LANES],
+        active: K8,
+        packets: bool,
+    ) -> [D8; 4] {
+        let packet = if packets {
+            self.radiance8(lights, u, ctr, active)
+        } else {
+            None
+        };
+        packet.unwrap_or_else(|| {
+            let mut v = [[0.0; LANES]; 4];
+            for i in (0..LANES).filter(|&i| active[i]) {
+                let c = self.radiance(lights, [u[0][i], u[1][i]], ctr[i], None, None);
+                for ch in 0..4 {
+                    v[ch][i] = c[ch];
+                }
             }
-            #[target_feature(enable = "avx2")]
-            fn avx2(sc: &Scene<'_>, lights: &LightSet<'_>, r: usize, sums: &mut [[f64; 4]]) {
-                sc.row_sums_lanes(lights, r, sums)
-            }
-            if crate::simd::use_avx512() {
-                // SAFETY: the CPU has these AVX-512 subsets (runtime detection).
-                unsafe { avx512(self, lights, r, sums) };
-                return;
-            }
-            if crate::simd::use_avx2() {
-                // SAFETY: the CPU has AVX2 (runtime detection).
-                unsafe { avx2(self, lights, r, sums) };
-                return;
-            }
-        }
-        self.row_sums_lanes(lights, r, sums)
+            v
+        })
     }
 
     #[inline(always)]
     fn row_sums_lanes(&self, lights: &LightSet<'_>, r: usize, sums: &mut [[f64; 4]]) {
-        let (w, spp) = (self.s.width, self.s.spp);
-        let n = w * spp;
         let packets = self.packets(lights);
-        let sx = self.strata.0;
         sums.fill([0.0; 4]);
-        // The next sample: its column, index in the pixel, and stratum (no divisions).
-        let (mut c, mut k, mut kx, mut ky) = (0, 0, 0, 0);
-        for s0 in (0..n).step_by(LANES) {
-            let active = lanes(|i| s0 + i < n);
-            let mut u = [[0.0; LANES]; 2];
-            let mut ctr = [Counter::at(0, 0); LANES];
-            let mut col = [0; LANES];
-            for i in (0..LANES).filter(|&i| active[i]) {
-                let (p, cr) = self.sample_at(r, c, k, (kx, ky));
-                (u[0][i], u[1][i], ctr[i], col[i]) = (p[0], p[1], cr, c);
-                (k, kx) = (k + 1, kx + 1);
-                if kx == sx {
-                    (kx, ky) = (0, ky + 1);
-                }
-                if k == spp {
-                    (c, k, kx, ky) = (c + 1, 0, 0, 0);
-                }
-            }
-            let packet = if packets {
-                self.radiance8(lights, &u, ctr, active)
-            } else {
-                None
-            };
-            let v = match packet {
-                Some(v) => v,
-                None => {
-                    let mut v = [[0.0; LANES]; 4];
-                    for i in (0..LANES).filter(|&i| active[i]) {
-                        let c = self.radiance(lights, [u[0][i], u[1][i]], ctr[i], None, None);
-                        for ch in 0..4 {
-                            v[ch][i] = c[ch];
-                        }
-                    }
-                    v
-                }
-            };
-            for i in (0..LANES).filter(|&i| active[i]) {
-                let sum = &mut sums[col[i]];
+        let mut walk = SampleWalk::new(self);
+        while let Some(p) = walk.next(self, r) {
+            let v = self.radiance_lanes(lights, &p.u, p.ctr, p.active, packets);
+            for i in (0..LANES).filter(|&i| p.active[i]) {
+                let sum = &mut sums[p.col[i]];
                 for ch in 0..4 {
                     sum[ch] += v[ch][i];
                 }

@@ -34,7 +34,7 @@ pub fn stream_key(seed: u64, stream: Stream) -> u64 {
 }
 
 /// A point of the counter space: draws dimension after dimension.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub struct Counter {
     key: u64,
     dim: u64,
