@@ -101,42 +101,46 @@ struct Samples8 {
     active: K8,
 }
 
-/// Steps through a row's `width x spp` samples eight at a time: each sample's column, index in
-/// the pixel, and stratum, without dividing.
-struct SampleWalk {
+/// The packets of row `r`'s `width x spp` samples, in order: each sample's column, index in
+/// the pixel and stratum are stepped through, without dividing.
+struct SampleWalk<'s, 'a> {
+    sc: &'s Scene<'a>,
+    r: usize,
+    /// The next sample's index in the row, and its (column, index, stratum x, stratum y).
     s0: usize,
-    n: usize,
-    sx: usize,
-    spp: usize,
     at: (usize, usize, usize, usize),
 }
 
-impl SampleWalk {
-    fn new(sc: &Scene<'_>) -> Self {
+impl<'s, 'a> SampleWalk<'s, 'a> {
+    fn new(sc: &'s Scene<'a>, r: usize) -> Self {
         SampleWalk {
+            sc,
+            r,
             s0: 0,
-            n: sc.s.width * sc.s.spp,
-            sx: sc.strata.0,
-            spp: sc.s.spp,
             at: (0, 0, 0, 0),
         }
     }
+}
 
-    /// The next packet of row `r` (its lanes past the row's end inactive).
+impl Iterator for SampleWalk<'_, '_> {
+    type Item = Samples8;
+
+    /// The next packet (its lanes past the row's end inactive).
     #[inline(always)]
-    fn next(&mut self, sc: &Scene<'_>, r: usize) -> Option<Samples8> {
-        if self.s0 >= self.n {
+    fn next(&mut self) -> Option<Samples8> {
+        let (sc, n) = (self.sc, self.sc.s.width * self.sc.s.spp);
+        if self.s0 >= n {
             return None;
         }
-        let active = lanes(|i| self.s0 + i < self.n);
+        let active = lanes(|i| self.s0 + i < n);
         self.s0 += LANES;
         let mut at = [(0, 0, 0, 0); LANES];
         for (a, _) in at.iter_mut().zip(active).filter(|&(_, on)| on) {
             *a = self.at;
             let (c, k, kx, ky) = self.at;
-            self.at = if k + 1 == self.spp {
+            self.at = if k + 1 == sc.s.spp {
                 (c + 1, 0, 0, 0)
-            } else if kx + 1 == self.sx {
+            } else if kx + 1 == sc.strata.0 {
                 (c, k + 1, 0, ky + 1)
             } else {
                 (c, k + 1, kx + 1, ky)
@@ -147,7 +151,7 @@ impl SampleWalk {
         // the target features.
         let pc = lanes(|i| {
             let (c, k, kx, ky) = at[i];
-            sc.sample_at(r, c, k, (kx, ky))
+            sc.sample_at(self.r, c, k, (kx, ky))
         });
         Some(Samples8 {
             u: [lanes(|i| pc[i].0[0]), lanes(|i| pc[i].0[1])],
@@ -223,8 +227,7 @@ impl Scene<'_> {
     fn row_sums_lanes(&self, lights: &LightSet<'_>, r: usize, sums: &mut [[f64; 4]]) {
         let packets = self.packets(lights);
         sums.fill([0.0; 4]);
-        let mut walk = SampleWalk::new(self);
-        while let Some(p) = walk.next(self, r) {
+        for p in SampleWalk::new(self, r) {
             let v = self.radiance_lanes(lights, &p.u, p.ctr, p.active, packets);
             for i in (0..LANES).filter(|&i| p.active[i]) {
                 let sum = &mut sums[p.col[i]];
@@ -526,7 +529,7 @@ mod tests {
         let clip = pos.iter().map(|p| cam.project(*p)).collect();
         let sc = Scene::build(s, faces, clip, pos.to_vec(), normals, albedo, rows);
         let lights = sc.lights();
-        let (w, spp) = (s.width, s.spp);
+        let w = s.width;
         for portable in [false, true] {
             set_force_portable(portable);
             for r in 0..s.height {
@@ -553,17 +556,9 @@ mod tests {
         }
         let (mut packets, mut total) = (0, 0);
         for r in 0..s.height {
-            for s0 in (0..w * spp).step_by(LANES) {
-                let active = lanes(|i| s0 + i < w * spp);
-                let mut u = [[0.0; LANES]; 2];
-                for i in (0..LANES).filter(|&i| active[i]) {
-                    let p = sc.sample(r * w + (s0 + i) / spp, (s0 + i) % spp).0;
-                    (u[0][i], u[1][i]) = (p[0], p[1]);
-                }
+            for p in SampleWalk::new(&sc, r) {
                 total += 1;
-                let ctr =
-                    std::array::from_fn(|i| sc.sample(r * w + (s0 + i) / spp, (s0 + i) % spp).1);
-                packets += sc.radiance8(&lights, &u, ctr, active).is_some() as usize;
+                packets += sc.radiance8(&lights, &p.u, p.ctr, p.active).is_some() as usize;
             }
         }
         packets as f64 / total as f64
